@@ -1,0 +1,1 @@
+"""Device drivers (current source, displacement sensor) and mock devices for smabench."""

@@ -1,0 +1,416 @@
+"""The ``smabench`` command line: import, fit, simulate, demo, bench.
+
+Every command has ``--help``. Bad input ends with one line on stderr and exit code 2, no traceback,
+and nothing half-written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger("smabench")
+
+EXIT_USAGE = 2
+REPO_ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_DATA_DIR = REPO_ROOT.parent / "shared" / "data" / "flexinol-isobaric"
+
+
+class CliError(Exception):
+    """An error to report as one line on stderr with exit code 2."""
+
+
+# Bad input, not a bug: our own error types (SessionError, TextImportError, FitError, effect
+# errors) all derive from ValueError; OSError covers unreadable or unwritable paths.
+USER_ERRORS: tuple[type[BaseException], ...] = (CliError, ValueError, OSError)
+
+
+def _write_json_atomic(path: str | Path, obj: object) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        json.dump(obj, fh, indent=2)
+        fh.write("\n")
+    os.replace(tmp, path)
+
+
+def _positive(kind: type = float) -> Callable[[str], float]:
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not v > 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        return v
+
+    return parse
+
+
+# --------------------------------------------------------------------------- import
+def cmd_import(args: argparse.Namespace) -> int:
+    from smabench.importer import import_text
+
+    folder = import_text(
+        args.file,
+        args.columns,
+        args.out,
+        wire_length_mm=args.wire_length_mm,
+        load_kg=args.load_kg,
+        wire_diameter_mm=args.wire_diameter_mm,
+    )
+    print(f"session written: {folder}")
+    return 0
+
+
+# --------------------------------------------------------------------------- fit
+def loop_temperature(session) -> tuple[np.ndarray, str]:
+    """The temperature a loop is fitted against: measured if present, else the estimate."""
+    for col in ("temperature_C", "temperature_est_C"):
+        if session.has(col):
+            return session.data[col], col
+    raise CliError(
+        f"{session.path}: no temperature_C or temperature_est_C values to fit a loop against"
+    )
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from smabench.physics.identify import MODELS, fit_loop
+    from smabench.sessions import load_session
+
+    if args.model not in MODELS:
+        raise CliError(f"unknown model {args.model!r}; choose from {', '.join(MODELS)}")
+    session = load_session(args.session)
+    temperature_c, tcol = loop_temperature(session)
+    position_mm = session.data["position_mm"]
+    fit = fit_loop(temperature_c, position_mm, args.model)
+    report = {
+        "model": fit.model,
+        "session": str(session.path),
+        "temperature_column": tcol,
+        "n_points": int(fit.n_points),
+        "rmse_mm": float(fit.rmse_mm),
+        "nrmse_percent": float(fit.nrmse_percent),
+        "ard_percent": float(fit.ard_percent),
+        "parameters": {k: float(v) for k, v in fit.parameters.items()},
+    }
+    print(f"model {fit.model} on {session.path} ({fit.n_points} points, vs {tcol})")
+    for k, v in report["parameters"].items():
+        print(f"  {k:>24s} = {v:.6g}")
+    print(
+        f"  rmse = {fit.rmse_mm:.5f} mm   nrmse = {fit.nrmse_percent:.3f} % of stroke   "
+        f"ard = {fit.ard_percent:.3f} %"
+    )
+    if args.json:
+        _write_json_atomic(args.json, report)
+        print(f"json written: {args.json}")
+    if args.plot:
+        from smabench.plotting import save_loop_png
+
+        ok = np.isfinite(temperature_c) & np.isfinite(position_mm)
+        save_loop_png(
+            args.plot,
+            temperature_c[ok],
+            position_mm[ok],
+            [
+                (
+                    f"model {fit.model} (nrmse {fit.nrmse_percent:.2f} %)",
+                    fit.predict(temperature_c[ok]),
+                )
+            ],
+            title=f"{session.path.name}",
+        )
+        print(f"plot written: {args.plot}")
+    return 0
+
+
+# --------------------------------------------------------------------------- simulate
+def simulate_session(
+    out: str | Path,
+    load_kg: float,
+    cycles: int,
+    current_a: float,
+    heat_s: float,
+    cool_s: float,
+    kind: str,
+    effects: Sequence[str],
+    rate_hz: float,
+    noise_mm: float,
+    seed: int,
+    wire_name: str = "paper",
+) -> Path:
+    """Simulate heating cycles on the plant and write them as a session (contract columns)."""
+    from smabench.physics.plant import Effects, heating_cycles_profile, simulate_plant
+    from smabench.physics.thermal import simulate_temperature
+    from smabench.physics.wire import PRESETS
+    from smabench.sessions import write_session
+
+    if not 0 < load_kg <= 10:
+        raise CliError(f"--load-kg must be in (0, 10] kg, got {load_kg}")
+    wire = PRESETS[wire_name]
+    if not 0 < current_a <= wire.max_current_a:
+        raise CliError(f"--current-a must be in (0, {wire.max_current_a}] A, got {current_a}")
+    eff = Effects.from_strings(list(effects))
+    dt_plant_s = 1e-3
+    t_s, i_a = heating_cycles_profile(cycles, current_a, heat_s, cool_s, dt_plant_s, kind=kind)
+    trace = simulate_plant(
+        t_s, i_a, load_kg=load_kg, wire=wire, effects=eff, noise_mm=noise_mm, seed=seed
+    )
+    step = max(1, int(round(1.0 / (rate_hz * dt_plant_s))))
+    sel = slice(None, None, step)
+    t_rec = trace.t_s[sel]
+    i_rec = trace.current_a[sel]
+    # What the bench would log as the temperature estimate: the heat balance driven by the
+    # recorded current and a constant (not the effect-laden) ambient.
+    temp_est = simulate_temperature(trace.t_s, trace.current_a, wire, 22.0, 22.0)[sel]
+    period_s = heat_s + cool_s
+    data = {
+        "t_s": t_rec,
+        "current_set_A": i_rec,
+        "current_A": i_rec,
+        "voltage_V": trace.voltage_v[sel],
+        "ambient_C": np.full_like(t_rec, 22.0),
+        "position_mm": trace.position_mm[sel],
+        "temperature_est_C": temp_est,
+        "mode": np.array(["open_loop"] * len(t_rec), dtype=object),
+        "cycle": np.minimum(np.floor(t_rec / period_s), cycles - 1).astype(int),
+        "flags": np.zeros(len(t_rec), dtype=int),
+    }
+    meta = {
+        "kind": "simulated",
+        "load_kg": load_kg,
+        "wire": {"preset": wire_name, "length_mm": wire.length_mm, "diameter_mm": wire.diameter_mm},
+        "protocol": {
+            "name": f"cycles-{kind}",
+            "cycles": cycles,
+            "current_a": current_a,
+            "heat_s": heat_s,
+            "cool_s": cool_s,
+        },
+        "controller": {"mode": "open_loop"},
+        "simulation": {
+            "effects": list(effects),
+            "noise_mm": noise_mm,
+            "seed": seed,
+            "rate_hz": rate_hz,
+        },
+        "status": "completed",
+        "end_reason": "protocol completed",
+    }
+    return write_session(out, meta, data)
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    folder = simulate_session(
+        args.out,
+        args.load_kg,
+        args.cycles,
+        args.current_a,
+        args.heat_s,
+        args.cool_s,
+        args.kind,
+        args.effect,
+        args.rate_hz,
+        args.noise_mm,
+        args.seed,
+        args.wire,
+    )
+    print(f"session written: {folder}")
+    return 0
+
+
+# --------------------------------------------------------------------------- demo
+def cmd_demo(args: argparse.Namespace) -> int:
+    from smabench.physics.identify import fit_loop
+    from smabench.plotting import save_loop_png
+    from smabench.sessions import load_session
+
+    out = Path(args.out) / time.strftime("demo-%Y%m%d-%H%M%S")
+    print(
+        f"simulating {args.cycles} heating cycles at {args.current_a} A under {args.load_kg} kg …"
+    )
+    folder = simulate_session(
+        out, args.load_kg, args.cycles, args.current_a, 3.0, 10.0, "complete", [], 100.0, 0.002, 0
+    )
+    session = load_session(folder)
+    temp = session.data["temperature_est_C"]
+    pos = session.data["position_mm"]
+    fit = fit_loop(temp, pos, "1")
+    png = save_loop_png(
+        folder / "loop.png",
+        temp,
+        pos,
+        [(f"model 1 (nrmse {fit.nrmse_percent:.2f} %)", fit.predict(temp))],
+        title=f"simulated loop, {args.load_kg} kg",
+        xlabel="estimated wire temperature (°C)",
+    )
+    print(f"session: {folder}")
+    print(f"loop plot: {png}")
+    print(f"model 1 fit: nrmse {fit.nrmse_percent:.2f} % of stroke, rmse {fit.rmse_mm:.4f} mm")
+    return 0
+
+
+# --------------------------------------------------------------------------- export
+def cmd_export(args: argparse.Namespace) -> int:
+    from smabench.sessions import export_csv, load_session
+
+    session = load_session(args.session)
+    columns = [c.strip() for c in args.columns.split(",")] if args.columns else None
+    n = export_csv(session, args.out, columns)
+    print(f"{n} rows written: {args.out}")
+    return 0
+
+
+# --------------------------------------------------------------------------- bench
+def _load_flexinol(data_dir: Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    loops = []
+    for f in sorted(data_dir.glob("filtered_data_*.txt")):
+        arr = np.loadtxt(f)
+        loops.append((f.stem, arr[:, 0], arr[:, 1] * 55.0))
+    if not loops:
+        raise CliError(f"no filtered_data_*.txt loops in {data_dir} (use --data DIR)")
+    return loops
+
+
+def cmd_bench_model(args: argparse.Namespace) -> int:
+    from smabench.physics.model_bench import benchmark_models, format_table
+    from smabench.physics.plant import benchmark_plant
+
+    loops = _load_flexinol(Path(args.data))
+    rows = benchmark_models(loops)
+    print(format_table(rows))
+    plant = benchmark_plant()
+    print(
+        f"\nplant simulation at a 1 kHz step: {plant['steps_per_s']:.3g} steps/s "
+        f"= {plant['x_real_time']:.0f}× real time"
+    )
+    return 0
+
+
+# --------------------------------------------------------------------------- parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="smabench",
+        description="Lab-bench application for shape-memory-alloy wire actuators.",
+    )
+    p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("import", help="import a measured loop from a text file into a session")
+    s.add_argument("file", help="whitespace- or comma-separated text, header optional")
+    s.add_argument(
+        "--columns",
+        required=True,
+        help="column names in file order, e.g. temperature_C,strain,stress_MPa "
+        "(contract names, strain, stress_MPa, temperature_C, skip)",
+    )
+    s.add_argument("--wire-length-mm", type=_positive(), help="wire length, mm (strain → mm)")
+    s.add_argument("--wire-diameter-mm", type=_positive(), help="wire diameter, mm (metadata)")
+    s.add_argument("--load-kg", type=_positive(), help="hanging load, kg (metadata)")
+    s.add_argument("--out", required=True, help="session folder to create (must not exist)")
+    s.set_defaults(func=cmd_import)
+
+    s = sub.add_parser("fit", help="identify a loop model on a session and report its error")
+    s.add_argument("session", help="session folder or CSV")
+    s.add_argument("--model", default="1", help="1, 2, preisach or sigmoid (default 1)")
+    s.add_argument("--json", help="write the parameters and errors as JSON here")
+    s.add_argument("--plot", help="write a PNG overlaying measured and model loops here")
+    s.set_defaults(func=cmd_fit)
+
+    s = sub.add_parser("simulate", help="simulate heating cycles on the plant into a session")
+    s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
+    s.add_argument("--cycles", type=_positive(int), default=5, help="number of cycles (5)")
+    s.add_argument("--current-a", type=float, default=1.0, help="heating current, A (1.0)")
+    s.add_argument("--heat-s", type=_positive(), default=3.0, help="heating time per cycle, s")
+    s.add_argument("--cool-s", type=_positive(), default=10.0, help="cooling time per cycle, s")
+    s.add_argument(
+        "--kind",
+        choices=["complete", "incomplete", "inner"],
+        default="complete",
+        help="the paper's excitations: complete, incomplete (reheat early), inner loops",
+    )
+    s.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="switch on a plant effect (repeatable); see --list-effects",
+    )
+    s.add_argument("--list-effects", action="store_true", help="list the plant effects and exit")
+    s.add_argument("--rate-hz", type=_positive(), default=100.0, help="recording rate, Hz (100)")
+    s.add_argument("--noise-mm", type=float, default=0.002, help="sensor noise std, mm")
+    s.add_argument("--seed", type=int, default=0, help="noise seed")
+    s.add_argument(
+        "--wire",
+        default="paper",
+        choices=["paper", "flexinol-0.38-70c", "flexinol-0.38-90c"],
+        help="wire preset",
+    )
+    s.add_argument("--out", help="session folder to create (must not exist)")
+    s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("demo", help="headless demo: simulate cycles, write a session and a PNG")
+    s.add_argument("--load-kg", type=float, default=2.0)
+    s.add_argument("--cycles", type=_positive(int), default=3)
+    s.add_argument("--current-a", type=float, default=1.0)
+    s.add_argument("--out", default=str(REPO_ROOT / "sessions"), help="parent folder")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("export", help="export a session's samples as CSV for spreadsheets")
+    s.add_argument("session", help="session folder or CSV")
+    s.add_argument("--out", required=True, help="CSV file to write")
+    s.add_argument("--columns", help="comma-separated columns to keep, in this order (default all)")
+    s.set_defaults(func=cmd_export)
+
+    s = sub.add_parser("bench", help="benchmarks that print figures")
+    bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")
+    b = bsub.add_parser("model", help="model speed and accuracy, plant speed")
+    b.add_argument(
+        "--data",
+        default=str(DEFAULT_DATA_DIR),
+        help="folder with the Flexinol loops (filtered_data_*.txt)",
+    )
+    b.set_defaults(func=cmd_bench_model)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    if getattr(args, "list_effects", False):
+        from smabench.physics.plant import EFFECT_DOCS
+
+        for name, doc in EFFECT_DOCS.items():
+            print(f"{name:22s} {doc}")
+        return 0
+    if args.command == "simulate" and not args.out:
+        parser.error("simulate needs --out")
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("smabench: interrupted", file=sys.stderr)
+        return 130
+    except USER_ERRORS as exc:
+        if args.verbose:
+            raise
+        msg = str(exc) or exc.__class__.__name__
+        print(f"smabench {args.command}: error: {msg}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,40 @@
+"""Shared fixtures: paths to the measured Flexinol loops and a CLI runner."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+FLEXINOL_DIR = Path(
+    os.environ.get("SMABENCH_FLEXINOL_DIR", REPO.parent / "shared" / "data" / "flexinol-isobaric")
+)
+
+
+def flexinol_files() -> list[Path]:
+    files = sorted(FLEXINOL_DIR.glob("filtered_data_*.txt"))
+    assert files, f"no measured loops in {FLEXINOL_DIR} (set SMABENCH_FLEXINOL_DIR)"
+    return files
+
+
+@pytest.fixture
+def run_cli():
+    """Run ``smabench ARGS`` in a subprocess; returns CompletedProcess with text output."""
+
+    def run(*args: str, check: bool = False) -> subprocess.CompletedProcess:
+        proc = subprocess.run(
+            [sys.executable, "-m", "smabench.cli", *map(str, args)],
+            capture_output=True,
+            text=True,
+            cwd=REPO,
+            timeout=300,
+        )
+        if check and proc.returncode != 0:
+            raise AssertionError(f"smabench {' '.join(map(str, args))} failed:\n{proc.stderr}")
+        return proc
+
+    return run

@@ -1,0 +1,101 @@
+"""Experiment protocols as state machines: timing of heat/cool phases and completion."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from smabench.bench.protocols import Protocol, ProtocolSettings
+
+
+def run(settings: ProtocolSettings, position=lambda t: 1.0, dt=0.01, t_max=500.0):
+    p = Protocol(settings)
+    ts, cur, cyc = [], [], []
+    t = 0.0
+    while t < t_max:
+        step = p.update(t, position(t))
+        if step.done:
+            break
+        ts.append(t)
+        cur.append(step.current_set_a)
+        cyc.append(step.cycle)
+        t += dt
+    return np.array(ts), np.array(cur), np.array(cyc), t
+
+
+def heat_durations(ts, cur):
+    on = cur > 0
+    edges = np.flatnonzero(np.diff(on.astype(int)))
+    starts = [0] if on[0] else []
+    starts += [e + 1 for e in edges if not on[e]]
+    ends = [e + 1 for e in edges if on[e]]
+    return [ts[e] - ts[s] for s, e in zip(starts, ends, strict=False)]
+
+
+def test_complete_cycles_wait_for_settling():
+    s = ProtocolSettings(
+        name="cycles",
+        cycles=3,
+        current_a=1.2,
+        heat_s=2.0,
+        min_cool_s=1.0,
+        cool_timeout_s=20.0,
+        settle_window_s=1.0,
+        settle_mm=0.01,
+    )
+    ts, cur, cyc, t_end = run(s, position=lambda t: 1.0)
+    assert heat_durations(ts, cur) == pytest.approx([2.0, 2.0, 2.0], abs=0.02)
+    assert set(cur) == {0.0, 1.2} and cyc.max() == 2
+    # constant position settles after the min cooling time: each cycle ≈ 2 + 1 s
+    assert t_end == pytest.approx(9.0, abs=0.1)
+
+
+def test_cooling_times_out_when_position_keeps_moving():
+    s = ProtocolSettings(name="cycles", cycles=1, heat_s=1.0, cool_timeout_s=5.0)
+    _, _, _, t_end = run(s, position=lambda t: 0.1 * t)
+    assert t_end == pytest.approx(6.0, abs=0.05)
+    # an exponential relaxation settles (spread < 5 µm over 1 s) about 5.3 s into cooling
+    s = ProtocolSettings(name="cycles", cycles=1, heat_s=1.0, cool_timeout_s=30.0)
+    _, _, _, t_end = run(s, position=lambda t: 2.0 - math.exp(-max(t - 1.0, 0.0)))
+    assert 1.0 + 5.0 < t_end < 1.0 + 6.5
+
+
+def test_incomplete_reheats_early_and_inner_uses_short_pulses():
+    s = ProtocolSettings(
+        name="incomplete", cycles=3, heat_s=2.0, partial_cool_s=1.5, min_cool_s=1.0
+    )
+    ts, cur, _, t_end = run(s)
+    assert heat_durations(ts, cur) == pytest.approx([2.0, 2.0, 2.0], abs=0.02)
+    assert t_end == pytest.approx(2 * 3.5 + 3.0, abs=0.1)
+    s = ProtocolSettings(
+        name="inner", cycles=4, heat_s=3.0, inner_heat_s=0.5, inner_cool_s=0.7, min_cool_s=1.0
+    )
+    ts, cur, _, _ = run(s)
+    assert heat_durations(ts, cur) == pytest.approx([3.0, 0.5, 0.5, 0.5], abs=0.02)
+
+
+def test_step_and_ramp():
+    s = ProtocolSettings(name="step", levels_a=(0.5, 1.0, 0.0), hold_s=2.0)
+    ts, cur, _, t_end = run(s)
+    assert t_end == pytest.approx(6.0, abs=0.02)
+    assert cur[ts < 1.9].max() == 0.5 and cur[(ts > 2.1) & (ts < 3.9)].min() == 1.0
+    s = ProtocolSettings(name="ramp", cycles=2, current_a=1.0, ramp_s=1.0)
+    ts, cur, _, t_end = run(s, dt=0.001)
+    assert cur.max() == pytest.approx(1.0, abs=1e-2) and t_end == pytest.approx(4.0, abs=0.01)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"name": "zigzag"}, "unknown protocol"),
+        ({"current_a": 3.0}, "driver limit"),
+        ({"current_a": -0.1}, "driver limit"),
+        ({"cycles": 0}, "cycles"),
+        ({"heat_s": 0}, "heat_s"),
+    ],
+)
+def test_validation(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ProtocolSettings(**kwargs).validate(max_current_a=2.0)

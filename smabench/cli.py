@@ -162,7 +162,10 @@ def simulate_session(
         raise CliError(f"--current-a must be in (0, {wire.max_current_a}] A, got {current_a}")
     eff = Effects.from_strings(list(effects))
     dt_plant_s = 1e-3
-    t_s, i_a = heating_cycles_profile(cycles, current_a, heat_s, cool_s, dt_plant_s, kind=kind)
+    t_s, i_a = heating_cycles_profile(
+        cycles, current_a, heat_s, cool_s, dt_plant_s, kind=kind, wire=wire, load_kg=load_kg,
+        effects=eff,
+    )  # fmt: skip
     trace = simulate_plant(
         t_s, i_a, load_kg=load_kg, wire=wire, effects=eff, noise_mm=noise_mm, seed=seed
     )
@@ -240,23 +243,26 @@ def cmd_demo(args: argparse.Namespace) -> int:
         f"simulating {args.cycles} heating cycles at {args.current_a} A under {args.load_kg} kg …"
     )
     folder = simulate_session(
-        out, args.load_kg, args.cycles, args.current_a, 3.0, 10.0, "complete", [], 100.0, 0.002, 0
+        out, args.load_kg, args.cycles, args.current_a, 4.0, 10.0, "complete", [], 100.0, 0.002, 0
     )
     session = load_session(folder)
     temp = session.data["temperature_est_C"]
     pos = session.data["position_mm"]
-    fit = fit_loop(temp, pos, "1")
+    fits = [fit_loop(temp, pos, name) for name in ("1", "sigmoid")]
     png = save_loop_png(
         folder / "loop.png",
         temp,
         pos,
-        [(f"model 1 (nrmse {fit.nrmse_percent:.2f} %)", fit.predict(temp))],
+        [(f"model {f.model} (nrmse {f.nrmse_percent:.2f} %)", f.predict(temp)) for f in fits],
         title=f"simulated loop, {args.load_kg} kg",
         xlabel="estimated wire temperature (°C)",
     )
     print(f"session: {folder}")
     print(f"loop plot: {png}")
-    print(f"model 1 fit: nrmse {fit.nrmse_percent:.2f} % of stroke, rmse {fit.rmse_mm:.4f} mm")
+    for f in fits:
+        print(
+            f"model {f.model} fit: nrmse {f.nrmse_percent:.2f} % of stroke, rmse {f.rmse_mm:.4f} mm"
+        )
     return 0
 
 
@@ -330,8 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="simulate heating cycles on the plant into a session")
     s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
     s.add_argument("--cycles", type=_positive(int), default=5, help="number of cycles (5)")
-    s.add_argument("--current-a", type=float, default=1.0, help="heating current, A (1.0)")
-    s.add_argument("--heat-s", type=_positive(), default=3.0, help="heating time per cycle, s")
+    s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
+    s.add_argument("--heat-s", type=_positive(), default=4.0, help="heating time per cycle, s")
     s.add_argument("--cool-s", type=_positive(), default=10.0, help="cooling time per cycle, s")
     s.add_argument(
         "--kind",
@@ -362,7 +368,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="headless demo: simulate cycles, write a session and a PNG")
     s.add_argument("--load-kg", type=float, default=2.0)
     s.add_argument("--cycles", type=_positive(int), default=3)
-    s.add_argument("--current-a", type=float, default=1.0)
+    s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
     s.add_argument("--out", default=str(REPO_ROOT / "sessions"), help="parent folder")
     s.set_defaults(func=cmd_demo)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -11,7 +10,6 @@ import pytest
 from smabench.physics.effects import CYCLE_DRIFT_TAU_CYCLES, EFFECT_DOCS, Effects
 from smabench.physics.plant import (
     Plant,
-    benchmark_plant,
     heating_cycles_profile,
     loop_mean_length_mm,
     loop_width_k,
@@ -88,20 +86,6 @@ def test_profiles_make_incomplete_cycles_and_inner_loops():
     assert (tr.martensite_fraction[switch] > 0.05).all()
     with pytest.raises(ValueError):
         heating_cycles_profile(1, 1.0, 1.0, 1.0, DT, kind="bogus")
-
-
-def test_speed_1khz_profile():
-    t, cur = _profile(n=10)
-    t0 = time.perf_counter()
-    simulate_plant(t, cur, load_kg=2.0)
-    elapsed = time.perf_counter() - t0
-    bench = benchmark_plant(duration_s=30.0, repeat=2)
-    print(
-        f"\nsimulate_plant: {len(t) / elapsed:.3g} steps/s here; benchmark "
-        f"{bench['steps_per_s']:.3g} steps/s = {bench['x_real_time']:.0f}× real time at 1 kHz; "
-        f"Plant.step {bench['plant_step_us']:.1f} µs"
-    )
-    assert bench["steps_per_s"] > 0
 
 
 # ---------------------------------------------------------------- paper Fig. 11 trends

@@ -1,0 +1,126 @@
+"""Loop models: identification, the online stepper's adaptation rules, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import flexinol_files
+
+from smabench.physics.identify import FitError, fit_loop, prepare_loop
+from smabench.physics.loop_models import (
+    CommonPoints,
+    LoopStepper,
+    Model2,
+    branch_directions,
+)
+
+CLOSED_FORM = ("1", "2", "sigmoid")
+
+
+def _loop(path):
+    a = np.loadtxt(path)
+    return a[:, 0], a[:, 1] * 55.0
+
+
+@pytest.fixture(scope="module")
+def fits():
+    t, y = _loop(flexinol_files()[0])
+    return t, y, {m: fit_loop(t, y, m) for m in CLOSED_FORM}
+
+
+def test_branch_directions_ignore_noise_inside_deadband():
+    t = np.r_[np.linspace(30, 100, 50), np.linspace(100, 30, 50)]
+    noisy = t + np.where(np.arange(100) % 2, 0.3, -0.3)
+    h = branch_directions(noisy, deadband_k=1.0)
+    assert h[:45].all() and not h[55:].any()
+
+
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_stepper_follows_major_loop(fits, model):
+    t, y, res = fits
+    fit = res[model]
+    loop = prepare_loop(t, y)
+    vec = fit.loop_model.evaluate(t, loop.heating)
+    online = fit.predict(t)
+    stroke = np.ptp(y)
+    # the stepper rescales branches between the reversal points it saw: close to the major loop
+    assert np.sqrt(np.mean((online - vec) ** 2)) < 0.01 * stroke
+
+
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_incomplete_cycle_starts_at_reversal_point(fits, model):
+    """Reheating before the wire cooled: the heating branch starts where cooling stopped."""
+    _, y, res = fits
+    m = res[model].loop_model
+    st = LoopStepper(m, deadband_k=0.5)
+    for temp in np.linspace(30, 145, 300):
+        st.step(temp)
+    cooled = [st.step(temp) for temp in np.linspace(145, 80, 200)]
+    reheated = [st.step(temp) for temp in np.linspace(80, 145, 200)]
+    stroke = np.ptp(y)
+    assert abs(reheated[0] - cooled[-1]) < 0.05 * stroke
+    # no jumps along the way
+    seq = np.r_[cooled, reheated]
+    assert np.max(np.abs(np.diff(seq))) < 0.1 * stroke
+    # hot end of the reheat is back on the major loop
+    assert abs(reheated[-1] - m.evaluate(np.array([145.0]), np.array([True]))[0]) < 0.02 * stroke
+
+
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_inner_loop_closes_at_its_reversal_point(fits, model):
+    """Inner loop: both common points move; coming back to the first reversal closes the loop."""
+    _, y, res = fits
+    st = LoopStepper(res[model].loop_model, deadband_k=0.5)
+    for temp in np.linspace(30, 92, 200):
+        st.step(temp)
+    y_top = st.step(92.0)
+    for temp in np.linspace(92, 75, 100):
+        st.step(temp)
+    for temp in np.linspace(75, 92, 100):
+        y_back = st.step(temp)
+    assert abs(y_back - y_top) < 0.01 * np.ptp(y)
+    assert [p[0] for p in st.stack] == [92.0, 75.0]
+    # passing the first reversal point wipes the inner loop out: back on the major branch
+    y_on = st.step(100.0)
+    assert st.stack == []
+    major = res[model].loop_model.evaluate(np.array([100.0]), np.array([True]))[0]
+    assert abs(y_on - major) < 0.01 * np.ptp(y)
+
+
+def test_model2_identification_recovers_synthetic_parameters():
+    cp = CommonPoints(50.0, 2.0, 110.0, 0.2)
+    truth = Model2(cp, amplitude_mm=0.6, f=0.55, c11=1.2, c21=1.0, c22=0.8)
+    t = np.r_[np.linspace(30, 130, 250), np.linspace(130, 30, 250)]
+    heating = np.r_[np.ones(250, bool), np.zeros(250, bool)]
+    y = truth.evaluate(t, heating) + np.random.default_rng(1).normal(0, 0.002, t.size)
+    fit = fit_loop(t, y, "2")
+    assert fit.nrmse_percent < 0.5
+    p = fit.parameters
+    assert p["t1_c"] == pytest.approx(50, abs=3) and p["t2_c"] == pytest.approx(110, abs=3)
+    assert p["f"] == pytest.approx(0.55, abs=0.05)
+
+
+def test_errors_are_defined_against_stroke(fits):
+    t, y, res = fits
+    fit = res["1"]
+    err = fit.loop_model.evaluate(t, prepare_loop(t, y).heating) - y
+    assert fit.rmse_mm == pytest.approx(np.sqrt(np.mean(err**2)))
+    assert fit.nrmse_percent == pytest.approx(100 * fit.rmse_mm / np.ptp(y))
+    assert fit.ard_percent == pytest.approx(100 * np.mean(np.abs(err)) / np.ptp(y))
+    assert fit_loop(t, y, "1", reference_length_mm=55.0).ard_percent < fit.ard_percent
+
+
+def test_bad_input_raises_fit_error():
+    t = np.r_[np.linspace(30, 130, 50), np.linspace(130, 30, 50)]
+    y = np.r_[np.linspace(2, 0, 50), np.linspace(0, 2, 50)]
+    with pytest.raises(FitError, match="NaN"):
+        fit_loop(np.where(np.arange(100) == 3, np.nan, t), y)
+    with pytest.raises(FitError, match="too few"):
+        fit_loop(t[:10], y[:10])
+    with pytest.raises(FitError, match="not a loop"):
+        fit_loop(t[:50], y[:50])  # heating only
+    with pytest.raises(FitError, match="not a loop"):
+        fit_loop(t, y)  # both branches on top of each other
+    with pytest.raises(FitError, match="unknown model"):
+        fit_loop(t, y, "nope")
+    assert issubclass(FitError, ValueError)

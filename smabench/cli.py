@@ -22,7 +22,7 @@ log = logging.getLogger("smabench")
 
 EXIT_USAGE = 2
 REPO_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_DATA_DIR = REPO_ROOT.parent / "shared" / "data" / "flexinol-isobaric"
+DEFAULT_DATA_DIR = REPO_ROOT / "sessions" / "samples" / "flexinol-isobaric"
 
 
 class CliError(Exception):

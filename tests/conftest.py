@@ -11,7 +11,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 FLEXINOL_DIR = Path(
-    os.environ.get("SMABENCH_FLEXINOL_DIR", REPO.parent / "shared" / "data" / "flexinol-isobaric")
+    os.environ.get("SMABENCH_FLEXINOL_DIR", REPO / "sessions" / "samples" / "flexinol-isobaric")
 )
 
 

@@ -156,23 +156,31 @@ class MockFirmware:
             max_ma = 0.0
         target = min(target_ma, max_ma)
         if dt_ms > 0:
-            self.current_ma += (target - self.current_ma) * (1.0 - math.exp(-dt_ms / CURRENT_TAU_MS))
+            gain = 1.0 - math.exp(-dt_ms / CURRENT_TAU_MS)
+            self.current_ma += (target - self.current_ma) * gain
         if not self.enabled:
             self.current_ma = 0.0 if dt_ms > 0 else self.current_ma
         self.duty = 0.0
         if self.enabled:
-            self.duty = MAX_DUTY if wire.open_wire else min(
-                MAX_DUTY, self.current_ma * 1e-3 * total_ohm / wire.supply_v
+            self.duty = (
+                MAX_DUTY
+                if wire.open_wire
+                else min(MAX_DUTY, self.current_ma * 1e-3 * total_ohm / wire.supply_v)
             )
-        limit_active = self.enabled and target_ma > 0 and (
-            target_ma >= self.limit_ma or target_ma > max_ma
+        limit_active = (
+            self.enabled and target_ma > 0 and (target_ma >= self.limit_ma or target_ma > max_ma)
         )
-        self.flags = (self.flags | p.Flag.LIMIT_ACTIVE) if limit_active else (
-            self.flags & ~p.Flag.LIMIT_ACTIVE
+        self.flags = (
+            (self.flags | p.Flag.LIMIT_ACTIVE)
+            if limit_active
+            else (self.flags & ~p.Flag.LIMIT_ACTIVE)
         )
         self.voltage_mv = self.current_ma * wire.resistance_ohm
         self._check_faults(dt_ms)
-        self.flags = (self.flags | p.Flag.ENABLED) if self.enabled else (self.flags & ~p.Flag.ENABLED)
+        if self.enabled:
+            self.flags |= p.Flag.ENABLED
+        else:
+            self.flags &= ~p.Flag.ENABLED
         out = bytearray()
         if self.telemetry_period_ms and now_ms >= self.next_telemetry_ms:
             out += self._frame(p.MsgType.TELEMETRY, self.telemetry_payload(now_ms, wire.ambient_c))

@@ -9,12 +9,12 @@ STAMP := $(VENV)/.installed
 APT_PACKAGES := gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev pkg-config \
                 clang libclang-rt-14-dev socat
 
-.PHONY: run test test-python test-firmware lint sysdeps venv clean bench
+.PHONY: run test test-python test-firmware firmware-build lint sysdeps venv clean bench
 
 run: venv
 	$(VENV)/bin/smabench demo
 
-test: sysdeps venv lint test-python test-firmware
+test: sysdeps venv lint firmware-build test-python test-firmware
 
 sysdeps:
 	@missing=$$(for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
@@ -38,8 +38,13 @@ lint: venv
 test-python: venv
 	$(VENV)/bin/pytest -q
 
+# the emulator tests in test-python need the .elf and the simavr harness
+firmware-build: sysdeps
+	$(MAKE) -C firmware elf sim
+
+# C host tests (ASan/UBSan), the frame-decoder fuzz run, the firmware smoke test in simavr
 test-firmware: sysdeps
-	@if [ -f firmware/Makefile ]; then $(MAKE) -C firmware test; fi
+	$(MAKE) -C firmware test
 
 bench: venv
 	$(VENV)/bin/smabench bench model

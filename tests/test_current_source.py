@@ -1,0 +1,493 @@
+"""Host driver (drivers/current_source.py) against the firmware model on a real pty, plus
+byte-exact replay of what the driver writes (fake serial port) and loop://.
+
+No fixed sleeps: every wait is on a condition with a deadline."""
+
+from __future__ import annotations
+
+import statistics
+import threading
+import time
+
+import pytest
+import serial
+
+from drivers import protocol as p
+from drivers.current_source import (
+    CommandRejected,
+    CurrentSource,
+    CurrentSourceError,
+    DeviceFault,
+    LinkTimeout,
+    VersionMismatch,
+)
+from drivers.mock.firmware import Electrical, MockFirmware
+from drivers.mock.serial_device import SerialDevice
+
+F = p.Flag
+
+pytestmark = pytest.mark.timeout(60)
+
+
+def wait_until(cond, timeout_s: float, what: str = "condition", poll_s: float = 0.002):
+    """Poll ``cond()`` until truthy; returns its value, fails after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        v = cond()
+        if v:
+            return v
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(poll_s)
+
+
+@pytest.fixture
+def dev():
+    with SerialDevice() as d:
+        yield d
+
+
+@pytest.fixture
+def cs(dev):
+    src = CurrentSource(dev.port_name, telemetry_period_s=0.005)
+    src.connect()
+    yield src
+    src.close()
+
+
+# ------------------------------------------------------------------ handshake
+def test_handshake_and_version(cs, dev):
+    assert cs.info == p.DeviceInfo(1, (1, 0, 0), 2.5, "SMA-CD328-MOCK")
+    assert cs.link_ok
+    t = cs.wait_telemetry(timeout_s=0.5)
+    assert not t.enabled and t.current_a == 0.0
+    assert cs.identify() == cs.info
+
+
+def test_version_mismatch(dev):
+    src = CurrentSource(dev.port_name, protocol_version=2)
+    with pytest.raises(VersionMismatch, match="v1"):
+        src.connect()
+    src.close()
+
+
+def test_open_missing_port():
+    with pytest.raises(CurrentSourceError, match="cannot open"):
+        CurrentSource("/dev/does-not-exist-smabench").connect()
+
+
+def test_commands_before_connect_raise():
+    src = CurrentSource("loop://")
+    with pytest.raises(CurrentSourceError):
+        src.set_current(0.1)
+    assert src.make_safe() is False
+    src.close()
+
+
+def test_round_trip_over_pty(cs):
+    rts = [cs.ping() for _ in range(200)]
+    med = statistics.median(rts)
+    print(f"\nPING round trip over the pty: median {med * 1e3:.2f} ms, max {max(rts) * 1e3:.2f} ms")
+    assert med < 0.02
+
+
+# ------------------------------------------------------------------ current control
+def test_set_current_follows_within_50ms(cs):
+    assert cs.set_current(1.2) == p.Status.OK
+    cs.enable(True)
+    first = cs.wait_telemetry(lambda t: t.enabled and t.setpoint_a == pytest.approx(1.2), 0.5)
+    settled = cs.wait_telemetry(lambda t: abs(t.current_a - 1.2) <= 0.05 * 1.2, 0.5)
+    # device time from the first frame showing the new setpoint (≤ 5 ms after it was applied)
+    assert settled.t_ms - first.t_ms <= 50
+    assert settled.duty > 0 and settled.voltage_v == pytest.approx(1.2 * 0.5, rel=0.1)
+    # a step down follows too
+    cs.set_current(0.3)
+    t0 = cs.wait_telemetry(lambda t: t.setpoint_a == pytest.approx(0.3), 0.5)
+    t1 = cs.wait_telemetry(lambda t: abs(t.current_a - 0.3) <= 0.05 * 0.3, 0.5)
+    assert t1.t_ms - t0.t_ms <= 50
+    assert cs.telemetry_age_s() < 0.1
+
+
+def test_clamping_beyond_limit(cs):
+    cs.set_limits(1.0, 0.25)
+    assert cs.limit_a == 1.0
+    assert cs.set_current(1.5) == p.Status.CLAMPED
+    cs.enable(True)
+    t = cs.wait_telemetry(lambda t: abs(t.current_a - 1.0) < 0.02, 0.5)
+    assert t.setpoint_a == pytest.approx(1.0)
+    assert t.flags & F.LIMIT_ACTIVE
+    # above the device's hard limit: refused locally, nothing sent
+    tx = cs.counters().tx_frames
+    with pytest.raises(ValueError, match="hard limit"):
+        cs.set_current(2.6)
+    with pytest.raises(ValueError):
+        cs.set_limits(3.0, 0.25)
+    with pytest.raises(ValueError):
+        cs.set_current(-0.1)
+    assert cs.counters().tx_frames == tx
+    # out of range on the device side: rejected with its status
+    with pytest.raises(CommandRejected) as exc:
+        cs._command(p.MsgType.SET_LIMITS, p.command_payload(p.MsgType.SET_LIMITS, 1000, 10))
+    assert exc.value.status == p.Status.OUT_OF_RANGE
+
+
+def test_unknown_command_rejected(cs):
+    with pytest.raises(CommandRejected) as exc:
+        cs._command(0x42, b"")
+    assert exc.value.status == p.Status.UNKNOWN_COMMAND
+    with pytest.raises(CommandRejected) as exc:
+        cs._command(p.MsgType.PING, b"\x00")
+    assert exc.value.status == p.Status.BAD_LENGTH
+    assert cs.link_ok
+
+
+# ------------------------------------------------------------------ faults and safety
+def test_open_wire_latches_and_refuses_enable(cs, dev):
+    cs.set_current(1.0)
+    cs.enable(True)
+    cs.wait_telemetry(lambda t: t.current_a > 0.9, 0.5)
+    dev.set_resistance(1e6)
+    t = cs.wait_telemetry(lambda t: t.flags & F.OPEN_WIRE, 0.5)
+    assert not t.enabled and t.current_a == 0.0
+    assert "open wire" in cs.fault_text()
+    with pytest.raises(DeviceFault, match="open wire"):
+        cs.enable(True)
+    assert cs.make_safe() is True
+    dev.set_resistance(0.5)
+    cs.clear_faults()
+    cs.wait_telemetry(lambda t: not t.flags & F.OPEN_WIRE, 0.5)
+    assert cs.fault_text() == ""
+    cs.enable(True)
+    cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 0.5)
+
+
+def test_make_safe_turns_output_off(cs):
+    cs.set_current(0.8)
+    cs.enable(True)
+    cs.wait_telemetry(lambda t: t.current_a > 0.7, 0.5)
+    assert cs.make_safe() is True
+    t = cs.wait_telemetry(lambda t: not t.enabled, 0.2)
+    assert t.current_a == 0.0
+    assert cs.make_safe() is True  # idempotent
+    assert not cs.wait_telemetry(timeout_s=0.2).enabled
+
+
+def test_host_timeout_turns_output_off(cs):
+    cs.set_current(1.0)
+    cs.enable(True)
+    cs.wait_telemetry(lambda t: t.current_a > 0.9, 0.5)
+    cs.pause_keepalive()
+    t_pause = time.monotonic()
+    t = cs.wait_telemetry(lambda t: not t.enabled, 1.0)
+    elapsed = t.host_time - t_pause
+    assert t.flags & F.HOST_TIMEOUT
+    assert "host timeout" in cs.fault_text()
+    # the last frame went out at most one keepalive interval before the pause
+    assert 0.25 - cs.keepalive_interval_s - 0.02 <= elapsed <= 0.25 + 0.1, elapsed
+    cs.pause_keepalive(False)
+    cs.enable(True)  # ENABLE clears HOST_TIMEOUT
+    t = cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 0.5)
+    assert not t.flags & F.HOST_TIMEOUT
+
+
+def test_keepalive_holds_output_on(cs):
+    cs.set_limits(2.5, 0.1)
+    assert cs.keepalive_interval_s == pytest.approx(0.1 / 3)
+    cs.set_current(0.5)
+    cs.enable(True)
+    cs.wait_telemetry(lambda t: t.enabled, 0.5)
+    k0 = cs.counters().keepalives
+    end = time.monotonic() + 0.6  # six host timeouts without a user command
+    while time.monotonic() < end:
+        t = cs.wait_telemetry(timeout_s=0.2)
+        assert t.enabled and not t.flags & F.HOST_TIMEOUT
+    assert cs.counters().keepalives - k0 >= 10
+
+
+def test_driver_gone_device_turns_off(dev):
+    """A host that dies without make_safe (thread stopped, port closed): the device's host
+    timeout turns the output off."""
+    src = CurrentSource(dev.port_name, telemetry_period_s=0.005)
+    src.connect()
+    src.set_current(1.0)
+    src.enable(True)
+    src.wait_telemetry(lambda t: t.enabled, 0.5)
+    src._stop.set()  # kill the owner thread, no ENABLE 0
+    src._wake_owner()
+    src._thread.join(1.0)
+    src._close_port()
+    t_kill = time.monotonic()
+    wait_until(lambda: not dev.firmware.enabled, 0.5, "device output off")
+    assert time.monotonic() - t_kill < 0.25 + 0.1
+    assert dev.firmware.flags & F.HOST_TIMEOUT
+    src._thread = None
+
+
+# ------------------------------------------------------------------ line errors
+def test_noise_counted_and_link_survives(cs, dev):
+    bad = bytearray(p.encode_frame(9, p.MsgType.ACK, b"\x00\x07\x00"))
+    bad[-2] ^= 0x01  # CRC byte
+    for _ in range(5):
+        dev.inject_to_host(b"\x13\x37\xff\x01\x00" + bytes(bad))  # junk frame, bad CRC
+    wait_until(lambda: cs.counters().crc_errors >= 5, 1.0, "host CRC errors")
+    assert cs.counters().frame_errors >= 5
+    host_bad = p.cobs_encode(p.build_packet(1, p.MsgType.ENABLE, b"\x01")[:-1] + b"\x55") + b"\x00"
+    for _ in range(3):
+        cs.send_raw(host_bad + b"\x02\x00")  # bad CRC, then a too-short frame
+    t = cs.wait_telemetry(lambda t: t.crc_errors >= 3 and t.frame_errors >= 3, 1.0)
+    assert not t.enabled  # the corrupted ENABLE 1 was not executed
+    assert cs.counters().device_crc_errors >= 3
+    assert cs.link_ok
+    cs.ping()
+    cs.set_current(0.2)
+
+
+def test_device_disappears(cs, dev):
+    cs.set_current(0.5)
+    cs.enable(True)
+    dev.stop()
+    t0 = time.monotonic()
+    wait_until(lambda: not cs.link_ok, 0.5, "link_ok False")
+    with pytest.raises(LinkTimeout):
+        cs.ping()
+    assert time.monotonic() - t0 < 0.5
+    assert "link lost" in cs.fault_text()
+    t0 = time.monotonic()
+    assert cs.make_safe() is False  # never raises, never hangs
+    cs.close()
+    assert time.monotonic() - t0 < 1.0
+
+
+def test_reopen_attempts_bounded(dev):
+    src = CurrentSource(dev.port_name, max_reconnect_attempts=2)
+    src.connect()
+    dev.stop()
+    wait_until(lambda: "gave up" in src.fault_text(), 2.0, "driver gives up reopening")
+    t0 = time.monotonic()
+    with pytest.raises(LinkTimeout, match="down"):
+        src.ping()
+    assert time.monotonic() - t0 < 0.05
+    src.close()
+
+
+def test_hung_device_times_out_and_recovers(cs, dev):
+    dev.pause()
+    t0 = time.monotonic()
+    with pytest.raises(LinkTimeout):
+        cs.ping()
+    assert time.monotonic() - t0 < (cs.retries + 1) * cs.ack_timeout_s + 0.1
+    wait_until(lambda: not cs.link_ok, 0.5, "link_ok False")
+    assert cs.counters().retries >= cs.retries
+    dev.resume()
+    wait_until(lambda: cs.link_ok, 1.0, "link back")
+    cs.wait_telemetry(timeout_s=0.5)  # telemetry re-configured by the resync handshake
+    cs.ping()
+
+
+def test_reconnect(cs):
+    cs.set_limits(2.0, 0.5)
+    info = cs.reconnect()
+    assert info.name == "SMA-CD328-MOCK"
+    assert cs.counters().reconnects == 1
+    assert cs.link_ok
+    cs.wait_telemetry(timeout_s=0.5)
+    assert cs.host_timeout_s == 0.5
+
+
+def test_concurrent_callers(cs):
+    errors = []
+
+    def worker(k):
+        try:
+            for i in range(20):
+                cs.set_current(0.01 * (k * 20 + i))
+                cs.ping()
+        except Exception as exc:  # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=worker, args=(k,)) for k in range(4)]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join(10)
+    assert not errors
+    assert cs.counters().timeouts == 0
+
+
+def test_subscribe_and_history(cs):
+    got = []
+    unsubscribe = cs.subscribe(got.append)
+    wait_until(lambda: len(got) >= 5, 1.0, "5 telemetry callbacks")
+    unsubscribe()
+    n = len(got)
+    cs.wait_telemetry(timeout_s=0.2)
+    cs.wait_telemetry(timeout_s=0.2)
+    assert len(got) <= n + 1
+    hist = cs.telemetry_history()
+    assert len(hist) >= 5 and all(b.t_ms > a.t_ms for a, b in zip(hist, hist[1:], strict=False))
+
+
+# ------------------------------------------------------------------ byte-exact replay
+class FakeSerial:
+    """Serial port stand-in: records what the driver writes, answers with a MockFirmware."""
+
+    def __init__(self, respond: bool = True) -> None:
+        self.written = bytearray()
+        self.frames: list[bytes] = []
+        self.fw = MockFirmware(0.0)
+        self.respond = respond
+        self.is_open = True
+        self.port = "fake"
+        self._in = bytearray()
+        self._cond = threading.Condition()
+        self.fail_next_read = False
+
+    def write(self, data: bytes) -> int:
+        with self._cond:
+            self.written += data
+            self.frames += [bytes(f) + b"\x00" for f in bytes(data).split(b"\x00")[:-1]]
+            if self.respond:
+                self._in += self.fw.receive(bytes(data), 0.0)
+                self._cond.notify_all()
+        return len(data)
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._in)
+
+    def read(self, n: int = 1) -> bytes:
+        with self._cond:
+            if self.fail_next_read:
+                self.fail_next_read = False
+                self.is_open = False
+                raise serial.SerialException("device disconnected (fake)")
+            if not self._in:
+                self._cond.wait(0.01)
+            out = bytes(self._in[:n])
+            del self._in[:n]
+            return out
+
+    def cancel_read(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+
+    def open(self) -> None:
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+
+
+# (method call, frame the driver must write), seq counting from the connect() frames
+REPLAY = [
+    (lambda cs: cs.enable(True), "06020201bfd400"),
+    (lambda cs: cs.set_current(1.0), "070303e80334ef00"),
+    (lambda cs: cs.set_limits(1.5, 0.5), "090404dc05f401524200"),
+    (lambda cs: cs.set_telemetry(0.005), "0405050503802c00"),
+    (lambda cs: cs.clear_faults(), "0506066fd700"),
+    (lambda cs: cs.ping(), "0507077ff400"),
+    (lambda cs: cs.enable(False), "030802035f0300"),
+    (lambda cs: cs.make_safe(), "030902036f3400"),
+]
+
+
+def test_byte_replay():
+    fake = FakeSerial()
+    cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0.01)
+    cs.connect()
+    # lone delimiter (flush), IDENTIFY v1 seq 0, SET_TELEMETRY 10 ms seq 1
+    assert fake.frames == [
+        b"\x00",
+        bytes.fromhex("010501018cef00"),
+        bytes.fromhex("0401050a034ff600"),
+    ]
+    for call, frame in REPLAY:
+        n = len(fake.written)
+        call(cs)
+        assert bytes(fake.written[n:]).hex() == frame
+    n = len(fake.written)
+    cs.close()  # make_safe: ENABLE 0 seq 10
+    assert bytes(fake.written[n:]) == p.encode_frame(10, p.MsgType.ENABLE, b"\x00")
+
+
+def test_keepalive_bytes():
+    fake = FakeSerial()
+    cs = CurrentSource(fake, telemetry_period_s=0)
+    cs.connect()
+    wait_until(lambda: cs.counters().keepalives >= 3, 1.0, "3 keepalive PINGs")
+    pings = [f for f in fake.frames[3:] if p.decode_frame(f).type == p.MsgType.PING]
+    assert len(pings) >= 3
+    assert pings[0] == p.encode_frame(2, p.MsgType.PING)
+    cs.close()
+
+
+def test_retry_then_timeout_bytes():
+    fake = FakeSerial(respond=False)
+    cs = CurrentSource(fake, keepalive=False, ack_timeout_s=0.05, retries=2)
+    cs.open()
+    t0 = time.monotonic()
+    with pytest.raises(LinkTimeout):
+        cs.connect()
+    assert time.monotonic() - t0 < 3 * 0.05 + 0.1
+    # the same command three times, each with its own seq
+    assert fake.frames == [b"\x00"] + [
+        p.encode_frame(s, p.MsgType.IDENTIFY, b"\x01") for s in range(3)
+    ]
+    assert cs.counters().retries == 2
+    cs.close()
+
+
+def test_auto_reconnect_after_port_error():
+    fake = FakeSerial()
+    cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0)
+    cs.connect()
+    fake.fail_next_read = True
+    cs._wake_owner()
+    wait_until(lambda: cs.counters().reconnects == 1, 2.0, "automatic reconnect")
+    wait_until(lambda: cs.link_ok or cs.ping(), 1.0, "link back")
+    cs.ping()
+    # after reopening: flush delimiter and a new IDENTIFY
+    ident = [
+        f for f in fake.frames if f != b"\x00" and p.decode_frame(f).type == p.MsgType.IDENTIFY
+    ]
+    assert len(ident) == 2
+    cs.close()
+
+
+def test_loop_url_no_ack_times_out():
+    """loop:// echoes the driver's own frames: they are no ACKs, so the handshake times out."""
+    cs = CurrentSource("loop://", ack_timeout_s=0.03, retries=1)
+    t0 = time.monotonic()
+    with pytest.raises(LinkTimeout):
+        cs.connect()
+    assert time.monotonic() - t0 < 0.5
+    assert cs.counters().rx_packets == 2  # its own two IDENTIFY frames, ignored
+    assert not cs.link_ok
+    cs.close()
+
+
+# ------------------------------------------------------------------ the pty mock itself
+def test_on_step_hook_sets_electrical_state():
+    calls = []
+
+    def hook(t_ms, dt_s, fw):
+        calls.append(dt_s)
+        return Electrical(resistance_ohm=2.0 if t_ms > 0 else 0.5)
+
+    with (
+        SerialDevice(on_step=hook) as d,
+        CurrentSource(d.port_name, telemetry_period_s=0.005) as src,
+    ):
+        src.set_current(0.5)
+        src.enable(True)
+        t = src.wait_telemetry(lambda t: abs(t.current_a - 0.5) < 0.01, 0.5)
+        assert t.voltage_v == pytest.approx(0.5 * 2.0, rel=0.03)
+        assert calls and all(dt == pytest.approx(1e-3) for dt in calls)
+
+
+def test_speed_factor():
+    with SerialDevice(speed=4.0) as d, CurrentSource(d.port_name, telemetry_period_s=0.02) as src:
+        a = src.wait_telemetry(timeout_s=0.5)
+        b = src.wait_telemetry(lambda t: t.host_time - a.host_time > 0.2, 1.0)
+        ratio = (b.t_ms - a.t_ms) / 1e3 / (b.host_time - a.host_time)
+        assert 3.0 < ratio < 5.0

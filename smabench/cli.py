@@ -378,6 +378,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--columns", help="comma-separated columns to keep, in this order (default all)")
     s.set_defaults(func=cmd_export)
 
+    from smabench.bench.headless import add_commands
+
+    add_commands(sub)
+
     s = sub.add_parser("bench", help="benchmarks that print figures")
     bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")
     b = bsub.add_parser("model", help="model speed and accuracy, plant speed")

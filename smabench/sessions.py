@@ -12,6 +12,7 @@ Reading: :func:`load_session` accepts a session folder or a bare CSV that has ``
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import logging
@@ -19,6 +20,7 @@ import math
 import os
 import shutil
 import tempfile
+import threading
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -121,9 +123,12 @@ def write_meta(folder: Path, meta: Mapping[str, Any]) -> None:
 
 
 class SessionWriter:
-    """Appends sample rows to ``samples.csv``; flushes to disk at least every ``flush_s`` seconds.
+    """Appends sample rows to ``samples.csv``; hands them to the OS at least every ``flush_s``.
 
-    Use as a context manager or call :meth:`close` with the end status and reason.
+    ``append`` only writes to the file and, when due, flushes Python's buffer to the OS (cheap,
+    and enough for a killed process: the rows are in the page cache). The ``fsync`` to the disk
+    runs on a background thread so that it never stalls the control loop. Use as a context
+    manager or call :meth:`close` with the end status and reason.
     """
 
     def __init__(
@@ -144,6 +149,10 @@ class SessionWriter:
         self._fh.flush()
         self._last_flush = time.monotonic()
         self.rows_written = 0
+        self._sync_due = threading.Event()
+        self._closing = False
+        self._syncer = threading.Thread(target=self._sync_loop, name="session-fsync", daemon=True)
+        self._syncer.start()
 
     def append(self, row: Mapping[str, Any]) -> None:
         """Append one sample; missing columns become empty cells."""
@@ -151,8 +160,17 @@ class SessionWriter:
         self.rows_written += 1
         now = time.monotonic()
         if now - self._last_flush >= self.flush_s:
-            self.flush()
+            self._fh.flush()
+            self._sync_due.set()
             self._last_flush = now
+
+    def _sync_loop(self) -> None:
+        fd = self._fh.fileno()
+        while not self._closing:
+            self._sync_due.wait()
+            self._sync_due.clear()
+            with contextlib.suppress(OSError, ValueError):  # closed under us: close() syncs
+                os.fsync(fd)
 
     def append_arrays(self, data: Mapping[str, Sequence[Any] | np.ndarray]) -> None:
         """Append many rows given as equally long columns."""
@@ -167,6 +185,7 @@ class SessionWriter:
         self.flush()
 
     def flush(self) -> None:
+        """Rows to the disk now (blocking)."""
         self._fh.flush()
         os.fsync(self._fh.fileno())
 
@@ -174,6 +193,9 @@ class SessionWriter:
         """Flush rows and rewrite ``session.json`` with the end status and reason."""
         if self._fh.closed:
             return
+        self._closing = True
+        self._sync_due.set()
+        self._syncer.join()
         self.flush()
         self._fh.close()
         self.meta.update(status=status, end_reason=reason, rows=self.rows_written, **extra)

@@ -2,7 +2,8 @@
 
 The paper's three excitations plus steps and ramps:
 - ``complete``: heat at ``current_a`` for ``heat_s``, then cool with no current until the position
-  has settled (spread below ``settle_mm`` over ``settle_window_s``) or ``cool_timeout_s`` passed.
+  has settled (mean drift below ``settle_mm`` across ``settle_window_s``) or after
+  ``cool_timeout_s``.
 - ``incomplete``: as complete, but reheat after ``partial_cool_s`` (before the wire has cooled), so
   the first common point moves to the reversal point.
 - ``inner``: short heat/cool pulses (``inner_heat_s``/``inner_cool_s``) inside the transformation,
@@ -80,7 +81,7 @@ class ProtocolSettings:
 
 
 class _Settle:
-    """Tracks whether the position has settled: max − min over a trailing window."""
+    """Tracks whether the position has settled: mean drift across a trailing window, mm."""
 
     def __init__(self, window_s: float, tol_mm: float) -> None:
         self.window_s, self.tol_mm = window_s, tol_mm
@@ -97,8 +98,11 @@ class _Settle:
             self.buf.popleft()
         if t_s - self.buf[0][0] < 0.9 * self.window_s:
             return False
+        # drift between the window's halves: insensitive to sensor noise, unlike max − min
         values = [p for _, p in self.buf]
-        return max(values) - min(values) <= self.tol_mm
+        half = len(values) // 2
+        drift = sum(values[half:]) / (len(values) - half) - sum(values[:half]) / max(half, 1)
+        return abs(drift) <= self.tol_mm
 
 
 class Protocol:

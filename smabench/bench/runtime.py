@@ -54,12 +54,15 @@ class RuntimeConfig:
     max_duration_s: float = math.inf
     ambient_c: float = 22.0
     wire: Wire = PAPER_WIRE
+    time_scale: float = 1.0  # device time / wall time: > 1 only against a mock run faster
 
     def validate(self) -> None:
         if not 1.0 <= self.rate_hz <= 2000.0:
             raise ValueError(f"loop rate must be in 1 … 2000 Hz, got {self.rate_hz}")
         if not 0.0 < self.current_limit_a <= self.wire.max_current_a * 1.25:
             raise ValueError(f"current limit {self.current_limit_a} A is out of range")
+        if not 0.1 <= self.time_scale <= 100.0:
+            raise ValueError(f"time scale must be in 0.1 … 100, got {self.time_scale}")
         if not 0.05 <= self.link_timeout_s <= 0.45:
             raise ValueError("link timeout must be in 0.05 … 0.45 s (safe state within 0.5 s)")
 
@@ -77,7 +80,7 @@ class BenchRuntime:
     """Runs one session: call :meth:`run` (blocking) or :meth:`start` (own thread).
 
     ``source`` is a ``drivers.current_source.CurrentSource``-like object (``set_current``,
-    ``enable``, ``latest`` telemetry, ``make_safe``), ``sensor`` a
+    ``enable``, ``latest()``, ``telemetry_age_s()``, ``fault_text()``, ``make_safe``), ``sensor`` a
     ``drivers.displacement.DisplacementSensor``-like object (``read_or_flag``, ``make_safe``),
     ``record`` a callable taking one row dict (the session writer's ``append``).
     """
@@ -161,7 +164,9 @@ class BenchRuntime:
                 if last_tick is not None:
                     periods.append(dt_s)
                 last_tick = now
-                t_s = now - t0
+                # the recorded clock and the physics run in device time (= wall time on a bench)
+                t_s = (now - t0) * cfg.time_scale
+                dt_s *= cfg.time_scale
 
                 if self._estop.is_set():
                     status, reason = "aborted", "e-stop"
@@ -169,7 +174,7 @@ class BenchRuntime:
                 if self._stop.is_set():
                     status, reason = "stopped", "stopped by operator"
                     break
-                if t_s > cfg.max_duration_s:
+                if now - t0 > cfg.max_duration_s:
                     status, reason = "aborted", f"maximum duration {cfg.max_duration_s} s reached"
                     break
 
@@ -185,15 +190,19 @@ class BenchRuntime:
                     reason = f"displacement sensor lost for {now - last_good_position_t:.2f} s"
                     break
 
-                tel = self.source.latest
-                tel_age_s = self.source.telemetry_age_s
-                if tel is None or tel_age_s > cfg.link_timeout_s:
-                    if t_s > cfg.link_timeout_s:
+                tel = self.source.latest()
+                tel_age_s = self.source.telemetry_age_s()
+                if tel is None or tel_age_s is None or tel_age_s > cfg.link_timeout_s:
+                    if now - t0 > cfg.link_timeout_s:
                         status = "aborted"
-                        reason = f"current driver telemetry lost for {tel_age_s:.2f} s"
+                        reason = (
+                            "current driver telemetry lost"
+                            if tel_age_s is None
+                            else f"current driver telemetry lost for {tel_age_s:.2f} s"
+                        )
                         break
                     flags |= FLAG_TELEMETRY_STALE
-                fault = self.source.fault_text(tel) if tel is not None else ""
+                fault = self.source.fault_text()
                 if fault:
                     status, reason = "aborted", f"current driver fault: {fault}"
                     break

@@ -42,6 +42,7 @@ class RunSettings:
     max_duration_s: float = 3600.0
     out_dir: Path = Path("sessions")
     session_id: str | None = None
+    time_scale: float = 1.0  # > 1 only against a mock bench run faster than real time
 
     def validate(self, device_limit_a: float | None = None) -> None:
         """Raise ValueError naming the first setting that is out of range."""
@@ -69,6 +70,7 @@ class RunSettings:
             position_max_mm=self.position_max_mm,
             max_duration_s=self.max_duration_s,
             wire=PRESETS[self.wire_preset],
+            time_scale=self.time_scale,
         )
 
     def folder(self) -> Path:
@@ -96,7 +98,7 @@ def session_meta(settings: RunSettings, devices: dict[str, Any]) -> dict[str, An
         "devices": devices,
         "protocol": proto,
         "controller": {"mode": "open_loop"},
-        "loop": {"rate_hz": settings.rate_hz},
+        "loop": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale},
         "limits": {
             "current_limit_a": settings.current_limit_a,
             "temperature_limit_c": settings.temperature_limit_c,

@@ -1,0 +1,251 @@
+"""The mock bench: the plant simulation served over the real transports.
+
+- current driver: :class:`~drivers.mock.serial_device.SerialDevice` (the Python firmware model,
+  sharing the codec and the safety rules) on a pty, or with ``firmware="emulated"`` the real AVR
+  firmware in simavr (``firmware/build/sim/smabench-sim``), coupled to the plant through the
+  harness's stdin commands;
+- displacement sensor: a pymodbus server with the shipped register map, on TCP (127.0.0.1) and,
+  when socat is installed, on RTU over a socat pty pair.
+
+The plant (:class:`~drivers.mock.plant_link.PlantLink`) is stepped by the current driver's
+device time with the current it measures, so ``speed`` > 1 runs the whole bench faster. The
+Modbus server reads the slider position from the plant at every request.
+
+:meth:`MockBench.stop` ends everything the bench started (threads, harness, socat).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import queue
+import re
+import shutil
+import subprocess
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from drivers.mock.firmware import Electrical, MockFirmware
+from drivers.mock.plant_link import PlantLink
+from drivers.mock.serial_device import SerialDevice
+from drivers.modbus_sim import SensorServer
+from smabench.physics.effects import Effects
+from smabench.physics.wire import PAPER_WIRE, Wire
+
+log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[2]
+SIM_BIN = Path(os.environ.get("SMABENCH_SIM", REPO / "firmware/build/sim/smabench-sim"))
+SIM_ELF = Path(os.environ.get("SMABENCH_ELF", REPO / "firmware/build/avr/smabench-cd.elf"))
+SENSOR_MAP = "generic-rs485-laser"
+SUPPLY_V = 5.0  # the Python firmware model's supply (the simavr harness has its own 12 V)
+FIRMWARES = ("python", "emulated")
+
+
+@dataclass(frozen=True)
+class MockPorts:
+    """Where the clients connect: the driver's pty and the sensor's transport specs."""
+
+    driver: str
+    sensor_tcp: str
+    sensor_rtu: str | None
+
+    def lines(self) -> list[str]:
+        out = [f"driver: {self.driver}", f"sensor-tcp: {self.sensor_tcp}"]
+        if self.sensor_rtu:
+            out.append(f"sensor-rtu: {self.sensor_rtu}")
+        return out
+
+
+class EmulatedDriver:
+    """The real firmware in the simavr harness, coupled to the plant every ``couple_s``.
+
+    A thread asks the harness for its state (``Q``), steps the plant with the measured current
+    over the AVR time that passed, and sets the wire resistance and ambient (``R``, ``A``).
+    """
+
+    def __init__(self, link: PlantLink, couple_s: float = 0.002) -> None:
+        for path in (SIM_BIN, SIM_ELF):
+            if not path.is_file():
+                raise FileNotFoundError(
+                    f"{path} missing: build the firmware with `make -C firmware elf sim`"
+                )
+        self.link = link
+        self.couple_s = couple_s
+        self.proc = subprocess.Popen(
+            [str(SIM_BIN), str(SIM_ELF)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            bufsize=1,
+        )
+        first = self.proc.stdout.readline().strip()
+        if not first.startswith("PTY "):
+            self.stop()
+            raise RuntimeError(f"simavr harness did not start: {first!r}")
+        self.port_name = first[4:]
+        self._states: queue.Queue[str] = queue.Queue()
+        self._running = True
+        self._reader = threading.Thread(target=self._read, name="sim-reader", daemon=True)
+        self._reader.start()
+        self._coupler = threading.Thread(target=self._couple, name="sim-coupler", daemon=True)
+        self._coupler.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            if line.startswith("STATE"):
+                self._states.put(line)
+
+    def _send(self, line: str) -> None:
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
+
+    def _couple(self) -> None:
+        last_ms: float | None = None
+        pattern = re.compile(r"t_ms=(\S+) duty=(\S+) current_a=(\S+)")
+        while self._running and self.proc.poll() is None:
+            try:
+                self._send("Q")
+                m = pattern.search(self._states.get(timeout=1.0))
+            except (queue.Empty, OSError, ValueError):
+                continue
+            if not m:
+                continue
+            t_ms, current_a = float(m.group(1)), float(m.group(3))
+            if last_ms is not None and t_ms > last_ms:
+                state = self.link.step((t_ms - last_ms) / 1000.0, current_a)
+                with contextlib.suppress(OSError, ValueError):
+                    self._send(f"R {state.resistance_ohm:.5f}")
+                    self._send(f"A {state.ambient_c:.2f}")
+            last_ms = t_ms
+            time.sleep(self.couple_s)
+
+    def stop(self) -> None:
+        self._running = False
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError, ValueError):
+                self.proc.stdin.close()  # EOF on stdin ends the harness
+            try:
+                self.proc.wait(2.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+class MockBench:
+    """Plant + current driver + displacement sensor, served over real transports."""
+
+    def __init__(
+        self,
+        load_kg: float = 2.0,
+        *,
+        speed: float = 1.0,
+        effects: Effects | None = None,
+        firmware: str = "python",
+        wire: Wire = PAPER_WIRE,
+        tcp_port: int = 0,
+        rtu: bool = True,
+        noise_mm: float = 0.002,
+        seed: int = 0,
+    ) -> None:
+        if firmware not in FIRMWARES:
+            raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
+        if not 0.0 < speed <= 100.0:
+            raise ValueError(f"speed must be in (0, 100], got {speed}")
+        if firmware == "emulated" and speed != 1.0:
+            raise ValueError("the emulated firmware runs in real time only (speed 1)")
+        self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed)
+        self.speed = speed
+        self.firmware = firmware
+        self.tcp_port = tcp_port
+        self.rtu = rtu
+        self.device: SerialDevice | None = None
+        self.emulated: EmulatedDriver | None = None
+        self.server: SensorServer | None = None
+        self._socat: subprocess.Popen | None = None
+        self._tmp: tempfile.TemporaryDirectory | None = None
+        self.ports: MockPorts | None = None
+
+    def _couple(self, t_ms: float, dt_s: float, fw: MockFirmware) -> Electrical:
+        state = self.link.step(dt_s, fw.current_ma / 1000.0)
+        return Electrical(
+            resistance_ohm=state.resistance_ohm, supply_v=SUPPLY_V, ambient_c=state.ambient_c
+        )
+
+    def _start_socat(self) -> tuple[str, str] | None:
+        if not self.rtu or shutil.which("socat") is None:
+            if self.rtu:
+                log.warning("socat not installed: no Modbus RTU port (TCP only)")
+            return None
+        self._tmp = tempfile.TemporaryDirectory(prefix="smabench-mock-")
+        server_end = os.path.join(self._tmp.name, "sensor-server")
+        client_end = os.path.join(self._tmp.name, "sensor")
+        self._socat = subprocess.Popen(
+            ["socat", f"pty,raw,echo=0,link={server_end}", f"pty,raw,echo=0,link={client_end}"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        deadline = time.monotonic() + 5.0
+        while not (os.path.exists(server_end) and os.path.exists(client_end)):
+            if time.monotonic() > deadline or self._socat.poll() is not None:
+                raise RuntimeError("socat did not create the RTU pty pair")
+            time.sleep(0.01)
+        return server_end, client_end
+
+    def start(self) -> MockPorts:
+        """Start every part; returns where to connect."""
+        try:
+            if self.firmware == "python":
+                self.device = SerialDevice(speed=self.speed, on_step=self._couple).start()
+                driver_port = self.device.port_name
+            else:
+                self.emulated = EmulatedDriver(self.link)
+                driver_port = self.emulated.port_name
+            rtu_ends = self._start_socat()
+            self.server = SensorServer(
+                SENSOR_MAP,
+                tcp_port=self.tcp_port,
+                serial_port=rtu_ends[0] if rtu_ends else None,
+            )
+            self.server.set_source("position", self.link.position_mm)
+            self.server.start()
+            rtu_spec = f"rtu:{rtu_ends[1]}:{self.server.baudrate}" if rtu_ends else None
+            self.ports = MockPorts(driver_port, self.server.tcp_spec, rtu_spec)
+        except BaseException:
+            self.stop()
+            raise
+        log.info("mock bench up: %s", "; ".join(self.ports.lines()))
+        return self.ports
+
+    def stop(self) -> None:
+        """Stop everything this bench started (idempotent)."""
+        if self.server is not None:
+            with contextlib.suppress(RuntimeError):
+                self.server.stop()
+            self.server = None
+        if self.device is not None:
+            self.device.stop()
+            self.device = None
+        if self.emulated is not None:
+            self.emulated.stop()
+            self.emulated = None
+        if self._socat is not None:
+            self._socat.terminate()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                self._socat.wait(2.0)
+            self._socat = None
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+
+    def __enter__(self) -> MockBench:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

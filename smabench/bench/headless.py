@@ -1,0 +1,355 @@
+"""Headless bench commands: ``smabench mock`` (serve the mock bench) and ``smabench run``.
+
+``smabench run --mock`` starts ``smabench mock`` as a separate process, reads the port names it
+prints and runs the session against them over the real transports, exactly as against hardware.
+Every setting is validated before any device is opened.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import logging
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from smabench.bench.protocols import PROTOCOL_NAMES, Protocol, ProtocolSettings
+from smabench.bench.session_run import RunSettings, run_session
+from smabench.physics.wire import PRESETS
+
+log = logging.getLogger(__name__)
+
+READY_LINE = "ready"
+EXIT_ABORTED = 1
+
+
+# --------------------------------------------------------------------------- smabench mock
+def cmd_mock(args: argparse.Namespace) -> int:
+    """Serve the mock bench until SIGINT/SIGTERM (or stdin EOF with --control-stdin)."""
+    from drivers.mock.bench import MockBench
+    from smabench.physics.effects import Effects
+
+    bench = MockBench(
+        args.load_kg,
+        speed=args.speed,
+        effects=Effects.from_strings(args.effect),
+        firmware=args.firmware,
+        tcp_port=args.tcp_port,
+        seed=args.seed,
+    )
+    done = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, lambda *_: done.set())
+    ports = bench.start()
+    try:
+        print(
+            f"mock bench: {args.load_kg} kg, speed {args.speed}×, firmware {args.firmware}"
+            + (f", effects {', '.join(args.effect)}" if args.effect else "")
+        )
+        for line in ports.lines():
+            print(line)
+        print(READY_LINE, flush=True)
+        if args.control_stdin:
+            threading.Thread(
+                target=_control_loop, args=(bench, done), name="mock-control", daemon=True
+            ).start()
+        while not done.wait(0.2):
+            pass
+    finally:
+        bench.stop()
+    return 0
+
+
+def _control_loop(bench, done: threading.Event) -> None:
+    """Fault injection from stdin, one command per line (for tests and demos):
+    ``sensor-delay S N`` (N responses late by S s), ``sensor-exception CODE N``,
+    ``sensor-corrupt N``, ``open-wire``, ``close-wire``, ``quit``. EOF ends the mock."""
+    for line in sys.stdin:
+        words = line.split()
+        if not words:
+            continue
+        try:
+            cmd, rest = words[0], words[1:]
+            if cmd == "sensor-delay":
+                bench.server.delay_responses(float(rest[0]), int(rest[1]))
+            elif cmd == "sensor-exception":
+                bench.server.fail_with_exception(int(rest[0]), int(rest[1]))
+            elif cmd == "sensor-corrupt":
+                bench.server.corrupt_responses(int(rest[0]))
+            elif cmd in ("open-wire", "close-wire") and bench.device is not None:
+                bench.device.set_open_wire(cmd == "open-wire")
+            elif cmd == "quit":
+                break
+            else:
+                print(f"mock: unknown command {line.strip()!r}", file=sys.stderr, flush=True)
+                continue
+            print(f"ok {cmd}", flush=True)
+        except (IndexError, ValueError) as exc:
+            print(f"mock: bad command {line.strip()!r}: {exc}", file=sys.stderr, flush=True)
+    done.set()
+
+
+@dataclass
+class MockPortsSeen:
+    driver: str
+    sensor_tcp: str
+    sensor_rtu: str | None
+
+
+class MockProcess:
+    """``smabench mock`` in its own process; :attr:`ports` once it is ready."""
+
+    def __init__(self, mock_args: list[str], timeout_s: float = 20.0) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "smabench.cli", "mock", "--control-stdin", *mock_args],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            bufsize=1,
+        )
+        found: dict[str, str] = {}
+        deadline = time.monotonic() + timeout_s
+        while True:
+            line = self.proc.stdout.readline()
+            if not line:
+                self.close()
+                raise RuntimeError(f"mock bench exited with code {self.proc.returncode}")
+            line = line.strip()
+            if line == READY_LINE:
+                break
+            key, sep, value = line.partition(": ")
+            if sep:
+                found[key] = value
+            if time.monotonic() > deadline:
+                self.close()
+                raise RuntimeError("mock bench did not become ready")
+        self.ports = MockPortsSeen(found["driver"], found["sensor-tcp"], found.get("sensor-rtu"))
+        self._replies = threading.Thread(target=self._drain, daemon=True)
+        self._replies.start()
+
+    def _drain(self) -> None:
+        for _ in self.proc.stdout:
+            pass
+
+    def send(self, command: str) -> None:
+        """One fault-injection command (see ``_control_loop``)."""
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+
+    def kill(self) -> None:
+        """SIGKILL: the bench disappears at once, as a cable pulled out."""
+        self.proc.kill()
+        self.proc.wait()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError, ValueError):
+                self.proc.stdin.close()
+            try:
+                self.proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+    def __enter__(self) -> MockProcess:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
+    """Options of the mock bench (``--load-kg`` etc.; with a prefix for ``smabench run``)."""
+    s.add_argument(f"--{prefix}speed", type=float, default=1.0, help="simulation speed (×)")
+    s.add_argument(
+        f"--{prefix}effect",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="switch on a plant effect (repeatable; `smabench simulate --list-effects`)",
+    )
+    s.add_argument(
+        f"--{prefix}firmware",
+        choices=["python", "emulated"],
+        default="python",
+        help="current driver: the Python firmware model, or the real firmware in simavr",
+    )
+    s.add_argument(f"--{prefix}seed", type=int, default=0, help="sensor noise seed")
+
+
+# --------------------------------------------------------------------------- smabench run
+def settings_from_args(args: argparse.Namespace) -> RunSettings:
+    """RunSettings from the command line; ValueError when out of range (nothing opened yet)."""
+    proto = ProtocolSettings(
+        name=args.protocol,
+        cycles=args.cycles,
+        current_a=args.current_a,
+        heat_s=args.heat_s,
+        cool_timeout_s=args.cool_timeout_s,
+        partial_cool_s=args.partial_cool_s,
+        inner_heat_s=args.inner_heat_s,
+        inner_cool_s=args.inner_cool_s,
+    )
+    settings = RunSettings(
+        load_kg=args.load_kg,
+        protocol=proto,
+        rate_hz=args.rate_hz,
+        wire_preset=args.wire,
+        current_limit_a=args.current_limit_a,
+        temperature_limit_c=args.temperature_limit_c,
+        max_duration_s=args.max_duration_s,
+        out_dir=Path(args.out),
+        session_id=args.session_id,
+        time_scale=args.mock_speed if args.mock else 1.0,
+    )
+    settings.validate()
+    return settings
+
+
+def _progress_printer(protocol: Protocol, total: int, every_s: float = 1.0):
+    last = [-math.inf]
+
+    def on_sample(row: dict) -> None:
+        now = time.monotonic()
+        if now - last[0] >= every_s:
+            last[0] = now
+            print(
+                f"  t {row['t_s']:7.1f} s  cycle {row['cycle'] + 1}/{total}  "
+                f"{protocol.phase:5s}  I {row['current_A']:.3f} A  "
+                f"T≈{row['temperature_est_C']:6.1f} °C  x {row['position_mm']:.4f} mm",
+                flush=True,
+            )
+
+    return on_sample
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from drivers.current_source import CurrentSource
+    from drivers.displacement import DisplacementSensor
+
+    if args.mock == bool(args.port):
+        raise ValueError("give either --mock or --port DEV --sensor SPEC")
+    if args.port and not args.sensor:
+        raise ValueError("--port needs --sensor (tcp:HOST:PORT or rtu:DEVICE[:BAUD])")
+    settings = settings_from_args(args)  # everything checked before a device is opened
+    mock = None
+    mock_args: list[str] = []
+    source = sensor = None
+    signal.signal(signal.SIGTERM, _interrupt)  # ends like Ctrl-C: devices safe, session closed
+    try:
+        if args.mock:
+            mock_args = [
+                *("--load-kg", str(args.load_kg), "--speed", str(args.mock_speed)),
+                *("--firmware", args.mock_firmware, "--seed", str(args.mock_seed)),
+            ]
+            for e in args.mock_effect:
+                mock_args += ["--effect", e]
+            mock = MockProcess(mock_args)
+            port = mock.ports.driver
+            spec = mock.ports.sensor_rtu if args.mock_sensor == "rtu" else mock.ports.sensor_tcp
+            if spec is None:
+                raise ValueError("the mock bench has no RTU port (socat missing)")
+        else:
+            port, spec = args.port, args.sensor
+        scale = settings.time_scale
+        source = CurrentSource(
+            port,
+            current_limit_a=settings.current_limit_a,
+            host_timeout_s=min(5.0, 0.25 * scale),
+            telemetry_period_s=min(1.0, 0.01 * scale),
+        )
+        info = source.connect()
+        settings.validate(device_limit_a=info.hard_limit_a)
+        source.clear_faults()
+        sensor = DisplacementSensor(args.sensor_map, spec)
+        sensor.connect()
+        devices = {
+            "current_driver": {"port": port, **dataclasses.asdict(info)},
+            "sensor": {"spec": spec, "map": sensor.map.name},
+            "mock": mock_args if args.mock else None,
+        }
+        protocol = Protocol(settings.protocol)
+        total = settings.protocol.cycles
+        print(
+            f"session: {settings.protocol.name}, {total} cycle(s) at {settings.protocol.current_a}"
+            f" A under {settings.load_kg} kg, {settings.rate_hz:g} Hz loop",
+            flush=True,
+        )
+        folder, result = run_session(
+            settings,
+            source,
+            sensor,
+            devices,
+            on_sample=None if args.quiet else _progress_printer(protocol, total),
+            command=protocol,
+        )
+    finally:
+        for dev in (source, sensor):
+            if dev is not None:
+                with contextlib.suppress(Exception):
+                    dev.make_safe()
+                with contextlib.suppress(Exception):
+                    dev.close()
+        if mock is not None:
+            mock.close()
+    print(f"session: {folder}")
+    print(f"{result.status}: {result.reason} ({result.samples} samples)")
+    if result.status != "completed":
+        print(f"smabench run: {result.status}: {result.reason}", file=sys.stderr)
+        return EXIT_ABORTED
+    return 0
+
+
+def _interrupt(*_: object) -> None:
+    raise KeyboardInterrupt
+
+
+def add_commands(sub) -> None:
+    """Register ``mock`` and ``run`` on the CLI's subparsers."""
+    s = sub.add_parser("mock", help="serve the mock bench over real transports, print its ports")
+    s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
+    s.add_argument("--tcp-port", type=int, default=0, help="Modbus TCP port (0 = any free)")
+    s.add_argument(
+        "--control-stdin", action="store_true", help="read fault-injection commands on stdin"
+    )
+    add_mock_arguments(s)
+    s.set_defaults(func=cmd_mock)
+
+    s = sub.add_parser("run", help="run a recorded session (headless) on the bench or the mock")
+    where = s.add_argument_group("devices")
+    where.add_argument("--mock", action="store_true", help="start and use the mock bench")
+    where.add_argument("--port", help="current driver serial port, e.g. /dev/ttyUSB0")
+    where.add_argument("--sensor", help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
+    where.add_argument("--sensor-map", default="generic-rs485-laser", help="register map")
+    where.add_argument(
+        "--mock-sensor", choices=["tcp", "rtu"], default="tcp", help="mock sensor transport"
+    )
+    add_mock_arguments(where, prefix="mock-")
+    s.add_argument("--load-kg", type=float, required=True, help="hanging load, kg (recorded)")
+    s.add_argument("--protocol", default="cycles", help=f"one of {', '.join(PROTOCOL_NAMES)}")
+    s.add_argument("--cycles", type=int, default=5, help="number of cycles (5)")
+    s.add_argument("--current-a", type=float, default=1.0, help="heating current, A (1.0)")
+    s.add_argument("--heat-s", type=float, default=3.0, help="heating time per cycle, s (3)")
+    s.add_argument("--cool-timeout-s", type=float, default=15.0, help="max cooling time, s (15)")
+    s.add_argument("--partial-cool-s", type=float, default=2.0, help="incomplete: cooling, s")
+    s.add_argument("--inner-heat-s", type=float, default=0.4, help="inner: pulse heating, s")
+    s.add_argument("--inner-cool-s", type=float, default=0.8, help="inner: pulse cooling, s")
+    s.add_argument("--rate-hz", type=float, default=200.0, help="loop rate, Hz (200)")
+    s.add_argument("--wire", default="paper", choices=sorted(PRESETS), help="wire preset")
+    s.add_argument("--current-limit-a", type=float, default=2.0, help="interlock, A (2.0)")
+    s.add_argument(
+        "--temperature-limit-c", type=float, default=160.0, help="interlock on the estimate, °C"
+    )
+    s.add_argument("--max-duration-s", type=float, default=3600.0, help="abort after, s")
+    s.add_argument("--out", default="sessions", help="parent folder of the session (sessions/)")
+    s.add_argument("--session-id", help="session folder name (default: time, protocol, load)")
+    s.add_argument("--quiet", action="store_true", help="no progress lines")
+    s.set_defaults(func=cmd_run)
+

@@ -44,6 +44,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         tcp_port=args.tcp_port,
         seed=args.seed,
     )
+    if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
+        logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     done = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: done.set())
@@ -230,10 +232,41 @@ def _progress_printer(protocol: Protocol, total: int, every_s: float = 1.0):
     return on_sample
 
 
-def cmd_run(args: argparse.Namespace) -> int:
+def open_devices(
+    port: str,
+    spec: str,
+    settings: RunSettings,
+    sensor_map: str = "generic-rs485-laser",
+    sensor_timeout_s: float = 0.05,
+):
+    """Connect the current driver and the sensor for a session; returns (source, sensor).
+
+    The settings are checked again against the driver's hard limit before anything but the
+    handshake is sent; latched faults from before the session are cleared.
+    """
     from drivers.current_source import CurrentSource
     from drivers.displacement import DisplacementSensor
 
+    scale = settings.time_scale  # the device's clocks run `scale` × faster on a fast mock
+    source = CurrentSource(
+        port,
+        current_limit_a=settings.current_limit_a,
+        host_timeout_s=min(5.0, 0.25 * scale),
+        telemetry_period_s=min(1.0, 0.01 * scale),
+    )
+    try:
+        info = source.connect()
+        settings.validate(device_limit_a=info.hard_limit_a)
+        source.clear_faults()
+        sensor = DisplacementSensor(sensor_map, spec, timeout_s=sensor_timeout_s, retries=0)
+        sensor.connect()
+    except BaseException:
+        source.close()
+        raise
+    return source, sensor
+
+
+def cmd_run(args: argparse.Namespace) -> int:
     if args.mock == bool(args.port):
         raise ValueError("give either --mock or --port DEV --sensor SPEC")
     if args.port and not args.sensor:
@@ -258,18 +291,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 raise ValueError("the mock bench has no RTU port (socat missing)")
         else:
             port, spec = args.port, args.sensor
-        scale = settings.time_scale
-        source = CurrentSource(
-            port,
-            current_limit_a=settings.current_limit_a,
-            host_timeout_s=min(5.0, 0.25 * scale),
-            telemetry_period_s=min(1.0, 0.01 * scale),
-        )
-        info = source.connect()
-        settings.validate(device_limit_a=info.hard_limit_a)
-        source.clear_faults()
-        sensor = DisplacementSensor(args.sensor_map, spec)
-        sensor.connect()
+        source, sensor = open_devices(port, spec, settings, args.sensor_map, args.sensor_timeout_s)
+        info = source.info
         devices = {
             "current_driver": {"port": port, **dataclasses.asdict(info)},
             "sensor": {"spec": spec, "map": sensor.map.name},
@@ -328,6 +351,12 @@ def add_commands(sub) -> None:
     where.add_argument("--port", help="current driver serial port, e.g. /dev/ttyUSB0")
     where.add_argument("--sensor", help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
     where.add_argument("--sensor-map", default="generic-rs485-laser", help="register map")
+    where.add_argument(
+        "--sensor-timeout-s",
+        type=float,
+        default=0.05,
+        help="per-request Modbus timeout in the loop, s (0.05); a late reading is flagged",
+    )
     where.add_argument(
         "--mock-sensor", choices=["tcp", "rtu"], default="tcp", help="mock sensor transport"
     )

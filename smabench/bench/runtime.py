@@ -7,9 +7,9 @@ assumed: ``t_s`` is the sample's own clock reading and every period is kept for 
 figures.
 
 Safety: the current limit, an estimated-temperature limit, position limits and an e-stop are
-checked every tick; a driver fault, a lost link (no telemetry or no valid sensor reading for
-``link_timeout_s``) or any exception puts both devices in their safe state and ends the session
-with the reason recorded.
+checked every tick; a driver fault, a lost driver link (no telemetry for ``link_timeout_s``), no
+valid position for ``sensor_timeout_s`` (shorter bursts are flagged samples) or any exception
+puts both devices in their safe state and ends the session with the reason recorded.
 """
 
 from __future__ import annotations
@@ -50,7 +50,8 @@ class RuntimeConfig:
     temperature_limit_c: float = 160.0
     position_min_mm: float = -math.inf
     position_max_mm: float = math.inf
-    link_timeout_s: float = 0.3
+    link_timeout_s: float = 0.25  # driver telemetry silent this long: abort (safe < 0.5 s)
+    sensor_timeout_s: float = 1.0  # no valid position this long: abort (shorter bursts flagged)
     max_duration_s: float = math.inf
     ambient_c: float = 22.0
     wire: Wire = PAPER_WIRE
@@ -63,6 +64,8 @@ class RuntimeConfig:
             raise ValueError(f"current limit {self.current_limit_a} A is out of range")
         if not 0.1 <= self.time_scale <= 100.0:
             raise ValueError(f"time scale must be in 0.1 … 100, got {self.time_scale}")
+        if not 0.05 <= self.sensor_timeout_s <= 5.0:
+            raise ValueError(f"sensor timeout must be in 0.05 … 5 s, got {self.sensor_timeout_s}")
         if not 0.05 <= self.link_timeout_s <= 0.45:
             raise ValueError("link timeout must be in 0.05 … 0.45 s (safe state within 0.5 s)")
 
@@ -185,7 +188,7 @@ class BenchRuntime:
                     last_good_position_t = now
                 else:
                     flags |= FLAG_SENSOR_INVALID
-                if now - last_good_position_t > cfg.link_timeout_s:
+                if now - last_good_position_t > cfg.sensor_timeout_s:
                     status = "aborted"
                     reason = f"displacement sensor lost for {now - last_good_position_t:.2f} s"
                     break

@@ -303,6 +303,18 @@ def cmd_bench_model(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_loop(args: argparse.Namespace) -> int:
+    from smabench.bench.loop_bench import format_rows, loop_timing
+
+    rows = []
+    for firmware in [f.strip() for f in args.firmware.split(",") if f.strip()]:
+        for rate in [float(r) for r in args.rates.split(",") if r.strip()]:
+            print(f"{firmware} firmware, {rate:g} Hz, {args.duration_s:g} s …", flush=True)
+            rows.append(loop_timing(rate, firmware, args.duration_s, args.sensor))
+    print(format_rows(rows))
+    return 0
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -391,6 +403,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="folder with the Flexinol loops (filtered_data_*.txt)",
     )
     b.set_defaults(func=cmd_bench_model)
+    b = bsub.add_parser("loop", help="bench loop rate and jitter against the mock bench")
+    b.add_argument("--duration-s", type=_positive(), default=60.0, help="per run, s (60)")
+    b.add_argument("--rates", default="200,500", help="loop rates, Hz (200,500)")
+    b.add_argument(
+        "--firmware", default="python,emulated", help="current drivers to use (python,emulated)"
+    )
+    b.add_argument("--sensor", choices=["tcp", "rtu"], default="tcp", help="Modbus transport")
+    b.set_defaults(func=cmd_bench_loop)
     return p
 
 

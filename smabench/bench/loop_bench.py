@@ -1,0 +1,99 @@
+"""``smabench bench loop``: the bench runtime's timing against the mock bench over real transports.
+
+For each configuration (loop rate, current-driver firmware) a mock bench runs in its own process;
+the runtime runs a recorded session (a constant current with slow steps, so the driver is busy)
+for ``duration_s`` and the measured tick periods give the achieved rate, the jitter (deviation of
+each period from the nominal one: p50, p99, max) and the missed deadlines (ticks that started more
+than one period late).
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from smabench.bench.headless import MockProcess, open_devices
+from smabench.bench.protocols import ProtocolSettings
+from smabench.bench.session_run import RunSettings, run_session
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopStep:
+    current_set_a: float
+    cycle: int
+    phase: str
+    done: bool = False
+
+
+class TimedSteps:
+    """Current steps 0.3 → 0.9 A every 2 s, done after ``duration_s`` (device time)."""
+
+    def __init__(self, duration_s: float) -> None:
+        self.duration_s = duration_s
+
+    def update(self, t_s: float, position_mm: float) -> LoopStep:
+        if t_s >= self.duration_s:
+            return LoopStep(0.0, 0, "done", True)
+        return LoopStep(0.3 if int(t_s / 2.0) % 2 == 0 else 0.9, 0, "steps")
+
+
+def loop_timing(rate_hz: float, firmware: str, duration_s: float, sensor: str = "tcp") -> dict:
+    """One configuration; returns the figures as a dict."""
+    with tempfile.TemporaryDirectory(prefix="smabench-bench-loop-") as tmp:
+        settings = RunSettings(
+            load_kg=2.0,
+            protocol=ProtocolSettings(name="step", levels_a=(0.9,)),
+            rate_hz=rate_hz,
+            out_dir=Path(tmp),
+            session_id="bench",
+            max_duration_s=duration_s + 30.0,
+        )
+        settings.validate()
+        with MockProcess(["--load-kg", "2", "--firmware", firmware]) as mock:
+            spec = mock.ports.sensor_tcp if sensor == "tcp" else mock.ports.sensor_rtu
+            source, dev_sensor = open_devices(mock.ports.driver, spec, settings)
+            try:
+                _, result = run_session(
+                    settings, source, dev_sensor, command=TimedSteps(duration_s)
+                )
+            finally:
+                source.close()
+                dev_sensor.close()
+    periods = result.periods_s
+    if result.status != "completed" or periods.size < 10:
+        raise RuntimeError(f"loop benchmark run ended {result.status}: {result.reason}")
+    nominal = 1.0 / rate_hz
+    jitter = np.abs(periods - nominal)
+    return {
+        "rate_hz": rate_hz,
+        "firmware": firmware,
+        "sensor": sensor,
+        "duration_s": float(periods.sum()),
+        "ticks": int(periods.size + 1),
+        "achieved_hz": float(1.0 / periods.mean()),
+        "jitter_p50_ms": float(np.percentile(jitter, 50) * 1e3),
+        "jitter_p99_ms": float(np.percentile(jitter, 99) * 1e3),
+        "jitter_max_ms": float(jitter.max() * 1e3),
+        "missed": int(result.missed_deadlines),
+    }
+
+
+def format_rows(rows: list[dict]) -> str:
+    head = (
+        f"{'rate Hz':>7s} {'firmware':9s} {'sensor':6s} {'s':>5s} {'ticks':>6s} "
+        f"{'achieved Hz':>11s} {'jitter p50 ms':>13s} {'p99 ms':>7s} {'max ms':>7s} {'missed':>6s}"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r['rate_hz']:7.0f} {r['firmware']:9s} {r['sensor']:6s} {r['duration_s']:5.0f} "
+            f"{r['ticks']:6d} {r['achieved_hz']:11.2f} {r['jitter_p50_ms']:13.3f} "
+            f"{r['jitter_p99_ms']:7.3f} {r['jitter_max_ms']:7.2f} {r['missed']:6d}"
+        )
+    return "\n".join(lines)

@@ -234,30 +234,38 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- demo
 def cmd_demo(args: argparse.Namespace) -> int:
+    """Headless demo: a session on the mock bench over real transports, fits, a loop PNG."""
     from smabench.physics.identify import fit_loop
     from smabench.plotting import save_loop_png
     from smabench.sessions import load_session
 
-    out = Path(args.out) / time.strftime("demo-%Y%m%d-%H%M%S")
+    sid = time.strftime("demo-%Y%m%d-%H%M%S")
     print(
-        f"simulating {args.cycles} heating cycles at {args.current_a} A under {args.load_kg} kg …"
+        f"mock bench ({args.speed:g}× real time): {args.cycles} heating cycles at "
+        f"{args.current_a} A under {args.load_kg} kg …",
+        flush=True,
     )
-    folder = simulate_session(
-        out, args.load_kg, args.cycles, args.current_a, 4.0, 10.0, "complete", [], 100.0, 0.002, 0
-    )
+    code = main(
+        ["run", "--mock", "--mock-speed", str(args.speed), "--load-kg", str(args.load_kg),
+         "--cycles", str(args.cycles), "--current-a", str(args.current_a), "--heat-s", "3",
+         "--out", str(args.out), "--session-id", sid]
+    )  # fmt: skip
+    if code != 0:
+        return code
+    folder = Path(args.out) / sid
     session = load_session(folder)
-    temp = session.data["temperature_est_C"]
-    pos = session.data["position_mm"]
+    ok = np.isfinite(session.data["position_mm"])
+    temp = session.data["temperature_est_C"][ok]
+    pos = session.data["position_mm"][ok]
     fits = [fit_loop(temp, pos, name) for name in ("1", "sigmoid")]
     png = save_loop_png(
         folder / "loop.png",
         temp,
         pos,
         [(f"model {f.model} (nrmse {f.nrmse_percent:.2f} %)", f.predict(temp)) for f in fits],
-        title=f"simulated loop, {args.load_kg} kg",
+        title=f"mock bench loop, {args.load_kg} kg",
         xlabel="estimated wire temperature (°C)",
     )
-    print(f"session: {folder}")
     print(f"loop plot: {png}")
     for f in fits:
         print(
@@ -377,9 +385,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="session folder to create (must not exist)")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("demo", help="headless demo: simulate cycles, write a session and a PNG")
-    s.add_argument("--load-kg", type=float, default=2.0)
-    s.add_argument("--cycles", type=_positive(int), default=3)
+    s = sub.add_parser(
+        "demo", help="headless demo: cycles on the mock bench, a session, fits and a loop PNG"
+    )
+    s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (2)")
+    s.add_argument("--cycles", type=_positive(int), default=3, help="heating cycles (3)")
+    s.add_argument("--speed", type=_positive(), default=5.0, help="mock bench speed, × (5)")
     s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
     s.add_argument("--out", default=str(REPO_ROOT / "sessions"), help="parent folder")
     s.set_defaults(func=cmd_demo)

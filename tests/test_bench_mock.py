@@ -7,6 +7,7 @@ real time in the loop tests (device time is recorded), in real time in the fault
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import threading
@@ -233,3 +234,27 @@ def test_bad_settings_rejected_before_any_device_opens(tmp_path, args, message):
     assert message in proc.stderr
     assert "nonexistent" not in proc.stderr
     assert not any(tmp_path.iterdir())  # no session folder either
+
+
+@pytest.mark.emulator
+def test_session_with_the_real_firmware_in_simavr(tmp_path):
+    """`--mock-firmware emulated`: the AVR build drives the plant through the harness."""
+    from drivers.mock.bench import SIM_BIN, SIM_ELF
+
+    if not (SIM_BIN.is_file() and SIM_ELF.is_file()) and not os.environ.get("CI"):
+        pytest.skip("firmware build missing (`make -C firmware elf sim`)")
+    proc = subprocess.run(
+        [sys.executable, "-m", "smabench.cli", "run", "--mock", "--mock-firmware", "emulated",
+         "--load-kg", "2", "--cycles", "1", "--current-a", "1.4", "--heat-s", "3",
+         "--cool-timeout-s", "2", "--out", str(tmp_path), "--session-id", "emu", "--quiet"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    s = load_session(tmp_path / "emu")
+    d = s.data
+    heat = d["current_set_A"] > 0
+    # the firmware's PI loop holds the measured current at the setpoint once it has settled
+    settled = heat & (d["t_s"] > d["t_s"][heat][0] + 0.2)
+    assert np.median(d["current_A"][settled]) == pytest.approx(1.4, abs=0.03)
+    assert np.nanmax(d["position_mm"]) - np.nanmin(d["position_mm"]) > 2.0  # it contracted
+    assert s.meta["devices"]["current_driver"]["name"] == "SMA-CD328"

@@ -17,11 +17,14 @@ Modbus server reads the slider position from the plant at every request.
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import logging
 import os
 import queue
 import re
 import shutil
+import signal
 import subprocess
 import tempfile
 import threading
@@ -44,6 +47,14 @@ SIM_ELF = Path(os.environ.get("SMABENCH_ELF", REPO / "firmware/build/avr/smabenc
 SENSOR_MAP = "generic-rs485-laser"
 SUPPLY_V = 5.0  # the Python firmware model's supply (the simavr harness has its own 12 V)
 FIRMWARES = ("python", "emulated")
+PR_SET_PDEATHSIG = 1
+
+
+def die_with_parent() -> None:
+    """preexec_fn: the child gets SIGTERM when the mock process dies, even by SIGKILL (Linux)."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 @dataclass(frozen=True)
@@ -83,6 +94,7 @@ class EmulatedDriver:
             stderr=subprocess.DEVNULL,
             text=True,
             bufsize=1,
+            preexec_fn=die_with_parent,
         )
         first = self.proc.stdout.readline().strip()
         if not first.startswith("PTY "):
@@ -189,6 +201,7 @@ class MockBench:
             ["socat", f"pty,raw,echo=0,link={server_end}", f"pty,raw,echo=0,link={client_end}"],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            preexec_fn=die_with_parent,
         )
         deadline = time.monotonic() + 5.0
         while not (os.path.exists(server_end) and os.path.exists(client_end)):

@@ -109,12 +109,16 @@ class MockProcess:
     """``smabench mock`` in its own process; :attr:`ports` once it is ready."""
 
     def __init__(self, mock_args: list[str], timeout_s: float = 20.0) -> None:
+        from drivers.mock.bench import die_with_parent
+
+        # it also ends on stdin EOF, i.e. when this process dies, whatever the signal
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "smabench.cli", "mock", "--control-stdin", *mock_args],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,
             bufsize=1,
+            preexec_fn=die_with_parent,
         )
         found: dict[str, str] = {}
         deadline = time.monotonic() + timeout_s

@@ -13,12 +13,17 @@ REPO = Path(__file__).resolve().parent.parent
 FLEXINOL_DIR = Path(
     os.environ.get("SMABENCH_FLEXINOL_DIR", REPO / "sessions" / "samples" / "flexinol-isobaric")
 )
+# where the workplace keeps the measured loops (more loads of the same wire may appear there)
+SHARED_FLEXINOL_DIR = REPO.parent / "shared" / "data" / "flexinol-isobaric"
 
 
 def flexinol_files() -> list[Path]:
-    files = sorted(FLEXINOL_DIR.glob("filtered_data_*.txt"))
+    """The shipped measured loops plus any other load of the same wire in the shared folder."""
+    files = {f.name: f for f in FLEXINOL_DIR.glob("filtered_data_*.txt")}
+    if "SMABENCH_FLEXINOL_DIR" not in os.environ:
+        files.update({f.name: f for f in SHARED_FLEXINOL_DIR.glob("filtered_data_*.txt")})
     assert files, f"no measured loops in {FLEXINOL_DIR} (set SMABENCH_FLEXINOL_DIR)"
-    return files
+    return [files[name] for name in sorted(files)]
 
 
 @pytest.fixture

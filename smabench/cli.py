@@ -323,6 +323,13 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_link(args: argparse.Namespace) -> int:
+    from smabench.bench.link_bench import format_figures, link_figures
+
+    print(format_figures(link_figures(args.firmware, args.n, args.telemetry_s)))
+    return 0
+
+
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
@@ -422,6 +429,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.add_argument("--sensor", choices=["tcp", "rtu"], default="tcp", help="Modbus transport")
     b.set_defaults(func=cmd_bench_loop)
+    b = bsub.add_parser("link", help="device link latency and telemetry rate (real transports)")
+    b.add_argument(
+        "--firmware", choices=["emulated", "python"], default="emulated", help="current driver"
+    )
+    b.add_argument("-n", type=_positive(int), default=500, help="requests per figure (500)")
+    b.add_argument("--telemetry-s", type=_positive(), default=5.0, help="telemetry count, s")
+    b.set_defaults(func=cmd_bench_link)
     return p
 
 

@@ -258,3 +258,15 @@ def test_session_with_the_real_firmware_in_simavr(tmp_path):
     assert np.median(d["current_A"][settled]) == pytest.approx(1.4, abs=0.03)
     assert np.nanmax(d["position_mm"]) - np.nanmin(d["position_mm"]) > 2.0  # it contracted
     assert s.meta["devices"]["current_driver"]["name"] == "SMA-CD328"
+
+
+def test_link_and_loop_benchmarks_print_figures(run_cli):
+    """Short runs of the benchmarks (the figures in the README come from full-length runs)."""
+    link = run_cli("bench", "link", "--firmware", "python", "-n", "20", "--telemetry-s", "0.5",
+                   check=True)  # fmt: skip
+    assert "PING         round trip: median" in link.stdout
+    assert "Modbus TCP: read latency" in link.stdout
+    loop = run_cli("bench", "loop", "--duration-s", "1", "--rates", "200", "--firmware", "python",
+                   check=True)  # fmt: skip
+    row = [line for line in loop.stdout.splitlines() if line.strip().startswith("200 python")]
+    assert row and 190 < float(row[0].split()[5]) < 210  # achieved Hz

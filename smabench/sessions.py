@@ -103,6 +103,11 @@ def _format_cell(value: Any) -> str:
     return repr(round(f, 9)) if abs(f) < 1e15 else repr(f)
 
 
+def format_row(row: Mapping[str, Any], columns: Sequence[str] = COLUMNS) -> str:
+    """One CSV line (no newline) of ``row`` in ``columns`` order; missing values are empty."""
+    return ",".join(_format_cell(row.get(c)) for c in columns)
+
+
 def _atomic_write_text(path: Path, text: str) -> None:
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
@@ -156,7 +161,7 @@ class SessionWriter:
 
     def append(self, row: Mapping[str, Any]) -> None:
         """Append one sample; missing columns become empty cells."""
-        self._fh.write(",".join(_format_cell(row.get(c)) for c in self.columns) + "\n")
+        self._fh.write(format_row(row, self.columns) + "\n")
         self.rows_written += 1
         now = time.monotonic()
         if now - self._last_flush >= self.flush_s:

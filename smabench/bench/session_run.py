@@ -115,11 +115,13 @@ def run_session(
     devices: dict[str, Any] | None = None,
     on_sample: Callable[[dict], None] | None = None,
     command: Any = None,
+    on_start: Callable[[BenchRuntime], None] | None = None,
 ) -> tuple[Path, RunResult]:
     """Run a validated session on connected devices; returns (folder, result).
 
     ``source``/``sensor`` are connected device clients; they are made safe at the end whatever
-    happens. ``command`` defaults to the protocol from the settings.
+    happens. ``command`` defaults to the protocol from the settings. ``on_start(runtime)`` is
+    called before the loop starts (to e-stop, stop or switch modes from another thread).
     """
     folder = settings.folder()
     writer = SessionWriter(folder, session_meta(settings, devices or {}))
@@ -129,6 +131,8 @@ def run_session(
     )
     result = None
     try:
+        if on_start is not None:
+            on_start(runtime)
         result = runtime.run()
     finally:
         if result is None:

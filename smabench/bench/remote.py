@@ -1,0 +1,310 @@
+"""The bench runtime in its own process, driven over stdin/stdout (used by the GUI).
+
+Why a process: the control loop then never waits for the GUI (no shared interpreter lock), and a
+GUI that crashes or freezes closes the pipe, which this process answers by ending the session and
+making both devices safe.
+
+Start: ``python -m smabench.bench.remote DEVICES_JSON`` with ``{"mock": [mock args…]}`` or
+``{"port": DEV, "sensor": SPEC, "sensor_map": NAME}``. The devices stay open between sessions.
+
+Out (stdout), one line each:
+- ``P <json>``: the ports and device info once connected;
+- ``R <csv row>``: one sample, columns as ``samples.csv``, batched every ~30 ms;
+- ``S <json>``: status twice a second (link health; phase, cycle, progress while running) or an
+  ``error`` for a refused command;
+- ``E <json>``: a session ended (status, reason, samples, folder);
+- ``Q <json>``: the process is closing.
+In (stdin): ``start <settings json>`` (the fields of :class:`RunSettings`, ``protocol`` as the
+fields of :class:`ProtocolSettings`), ``estop``, ``stop``, ``pause``, ``resume``, ``mode NAME``,
+``gains KP KI KD``, ``quit``. EOF on stdin (the GUI died) e-stops and closes everything.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import logging
+import math
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from smabench.bench.headless import MockProcess, open_devices
+from smabench.bench.protocols import Protocol, ProtocolSettings
+from smabench.bench.session_run import RunSettings, run_session
+from smabench.sessions import format_row
+
+log = logging.getLogger(__name__)
+
+BATCH_S = 0.03
+STATUS_S = 0.5
+
+
+class PausableCommand:
+    """Wraps a protocol: while paused the current is 0 and the protocol's clock stands still."""
+
+    def __init__(self, protocol: Protocol) -> None:
+        self.protocol = protocol
+        self._paused = threading.Event()
+        self._paused_total_s = 0.0
+        self._pause_t_s: float | None = None
+
+    def pause(self, on: bool) -> None:
+        if on:
+            self._paused.set()
+        else:
+            self._paused.clear()
+
+    @property
+    def paused(self) -> bool:
+        return self._paused.is_set()
+
+    def update(self, t_s: float, position_mm: float):
+        if self._paused.is_set():
+            if self._pause_t_s is None:
+                self._pause_t_s = t_s
+            return dataclasses.replace(
+                self.protocol.update(self._pause_t_s - self._paused_total_s, position_mm),
+                current_set_a=0.0,
+                phase="paused",
+                done=False,
+            )
+        if self._pause_t_s is not None:
+            self._paused_total_s += t_s - self._pause_t_s
+            self._pause_t_s = None
+        return self.protocol.update(t_s - self._paused_total_s, position_mm)
+
+
+def settings_from_json(cfg: dict[str, Any]) -> RunSettings:
+    s = dict(cfg)
+    proto = dict(s.pop("protocol", {}))
+    if "levels_a" in proto:
+        proto["levels_a"] = tuple(proto["levels_a"])
+    for key in ("position_min_mm", "position_max_mm"):
+        if key in s and s[key] is None:
+            s[key] = -math.inf if key.endswith("min_mm") else math.inf
+    if "out_dir" in s:
+        s["out_dir"] = Path(s["out_dir"])
+    settings = RunSettings(protocol=ProtocolSettings(**proto), **s)
+    settings.validate()
+    return settings
+
+
+class _Emitter:
+    """Batches sample rows to stdout from a thread of its own (the loop only enqueues)."""
+
+    def __init__(self, out) -> None:
+        self.out = out
+        self.rows: queue.SimpleQueue[dict | None] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._run, name="emit", daemon=True)
+        self._thread.start()
+
+    def line(self, kind: str, payload: Any) -> None:
+        with self._lock:
+            self.out.write(f"{kind} {json.dumps(payload)}\n")
+            self.out.flush()
+
+    def _run(self) -> None:
+        done = False
+        while not done:
+            time.sleep(BATCH_S)
+            batch = []
+            while True:
+                try:
+                    row = self.rows.get_nowait()
+                except queue.Empty:
+                    break
+                if row is None:
+                    done = True
+                    break
+                batch.append("R " + format_row(row))
+            if batch:
+                with self._lock:
+                    self.out.write("\n".join(batch) + "\n")
+                    self.out.flush()
+
+    def flush_rows(self) -> None:
+        """Wait until the rows queued so far are written (before an end line)."""
+        deadline = time.monotonic() + 1.0
+        while not self.rows.empty() and time.monotonic() < deadline:
+            time.sleep(0.005)
+        time.sleep(BATCH_S)
+
+    def close(self) -> None:
+        self.rows.put(None)
+        self._thread.join(2.0)
+
+
+class BenchServer:
+    """Devices opened once; sessions started and steered by line commands."""
+
+    def __init__(self, devices_cfg: dict[str, Any], emit: _Emitter) -> None:
+        self.emit = emit
+        self.mock: MockProcess | None = None
+        if "mock" in devices_cfg:
+            self.mock = MockProcess(list(devices_cfg["mock"]))
+            self.port, self.spec = self.mock.ports.driver, self.mock.ports.sensor_tcp
+        else:
+            self.port, self.spec = devices_cfg["port"], devices_cfg["sensor"]
+        # devices are opened with permissive settings; each session checks its own
+        probe = RunSettings(load_kg=1.0, time_scale=float(devices_cfg.get("time_scale", 1.0)))
+        self.source, self.sensor = open_devices(
+            self.port, self.spec, probe, devices_cfg.get("sensor_map", "generic-rs485-laser")
+        )
+        self.info = dataclasses.asdict(self.source.info)
+        self.runtime = None
+        self.command: PausableCommand | None = None
+        self.protocol: Protocol | None = None
+        self.settings: RunSettings | None = None
+        self._session: threading.Thread | None = None
+        self._t0 = time.monotonic()
+        self.closed = threading.Event()
+
+    @property
+    def running(self) -> bool:
+        return self._session is not None and self._session.is_alive()
+
+    def start_session(self, settings_cfg: dict[str, Any]) -> None:
+        if self.running:
+            raise ValueError("a session is running")
+        settings = settings_from_json(settings_cfg)
+        settings.validate(device_limit_a=self.source.info.hard_limit_a)
+        self.source.clear_faults()
+        self.protocol = Protocol(settings.protocol)
+        self.command = PausableCommand(self.protocol)
+        self.settings = settings
+        self.runtime = None
+        ready = threading.Event()
+        self._t0 = time.monotonic()
+
+        def on_start(runtime) -> None:
+            self.runtime = runtime
+            ready.set()
+
+        def run() -> None:
+            try:
+                folder, result = run_session(
+                    settings, self.source, self.sensor,
+                    {"port": self.port, "sensor": self.spec, "device": self.info},
+                    on_sample=self.emit.rows.put, command=self.command, on_start=on_start,
+                )  # fmt: skip
+                end = {"status": result.status, "reason": result.reason,
+                       "samples": result.samples, "folder": str(folder)}  # fmt: skip
+            except Exception as exc:  # the session could not run: say why, keep serving
+                log.exception("session failed")
+                end = {"status": "error", "reason": f"{type(exc).__name__}: {exc}"}
+            ready.set()
+            self.emit.flush_rows()
+            self.emit.line("E", end)
+
+        self._session = threading.Thread(target=run, name="session", daemon=True)
+        self._session.start()
+        ready.wait(5.0)
+
+    def handle(self, line: str) -> bool:
+        """One command line; returns False on ``quit``."""
+        words = line.split(maxsplit=1)
+        if not words:
+            return True
+        cmd, rest = words[0], (words[1] if len(words) > 1 else "")
+        rt = self.runtime if self.running else None
+        try:
+            if cmd == "quit":
+                return False
+            if cmd == "start":
+                self.start_session(json.loads(rest))
+            elif cmd == "estop":
+                if rt is not None:
+                    rt.estop()
+                else:
+                    self.source.make_safe()
+            elif cmd == "stop" and rt is not None:
+                rt.stop()
+            elif cmd in ("pause", "resume") and self.command is not None:
+                self.command.pause(cmd == "pause")
+            elif cmd == "mode" and rt is not None:
+                rt.set_mode(rest.strip())
+            elif cmd == "gains" and rt is not None:
+                rt.set_gains(*map(float, rest.split()[:3]))
+            elif cmd not in ("stop", "pause", "resume", "mode", "gains"):
+                raise ValueError(f"unknown command {cmd!r}")
+            else:
+                raise ValueError(f"{cmd}: no session running")
+        except (ValueError, TypeError, AttributeError, json.JSONDecodeError) as exc:
+            self.emit.line("S", {"error": f"{line.strip()}: {exc}"})
+        return True
+
+    def status(self) -> dict[str, Any]:
+        st: dict[str, Any] = {
+            "running": self.running,
+            "driver_link_ok": bool(self.source.link_ok),
+            "driver_fault": self.source.fault_text(),
+            "sensor_stats": dict(self.sensor.stats),
+        }
+        if self.protocol is not None and self.settings is not None:
+            st.update(
+                elapsed_s=time.monotonic() - self._t0,
+                cycle=self.protocol.cycle,
+                cycles=self.settings.protocol.cycles,
+                phase="paused" if self.command.paused else self.protocol.phase,
+                progress=self.protocol.progress,
+                mode=getattr(self.runtime, "mode", "open_loop"),
+            )
+        return st
+
+    def status_loop(self) -> None:
+        while not self.closed.wait(STATUS_S):
+            with contextlib.suppress(Exception):
+                self.emit.line("S", self.status())
+
+    def close(self) -> None:
+        """E-stop a running session, devices safe, everything closed."""
+        self.closed.set()
+        if self.running and self.runtime is not None:
+            self.runtime.estop()
+            self._session.join(3.0)
+        for dev in (self.source, self.sensor):
+            with contextlib.suppress(Exception):
+                dev.make_safe()
+            with contextlib.suppress(Exception):
+                dev.close()
+        if self.mock is not None:
+            self.mock.close()
+
+
+def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
+    """Open the devices, then obey stdin until ``quit`` or EOF (EOF = the GUI went away)."""
+    stdin = stdin or sys.stdin
+    emit = _Emitter(stdout or sys.stdout)
+    try:
+        server = BenchServer(devices_cfg, emit)
+    except Exception as exc:
+        emit.line("E", {"status": "error", "reason": f"{type(exc).__name__}: {exc}"})
+        emit.close()
+        return 2
+    emit.line("P", {"driver": server.port, "sensor": server.spec, "device": server.info})
+    threading.Thread(target=server.status_loop, name="status", daemon=True).start()
+    try:
+        for line in stdin:
+            if not server.handle(line):
+                break
+    finally:
+        server.close()
+        emit.line("Q", {"reason": "closed"})
+        emit.close()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    return serve(json.loads(argv[0]) if argv else {"mock": ["--load-kg", "2"]})
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -5,9 +5,13 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-# Debian packages: firmware toolchain + emulator, fuzzing, pty helpers, headless plotting.
+# Debian packages: firmware toolchain + emulator, fuzzing, pty helpers, Qt offscreen + Xvfb.
 APT_PACKAGES := gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev pkg-config \
-                clang libclang-rt-14-dev socat
+                clang libclang-rt-14-dev socat \
+                libegl1 libgl1 libx11-6 libdbus-1-3 libfontconfig1 libfreetype6 libglib2.0-0 \
+                libxkbcommon0 xvfb xauth libxcb-cursor0 libxcb-icccm4 libxcb-image0 \
+                libxcb-keysyms1 libxcb-render-util0 libxcb-render0 libxcb-shape0 libxcb-util1 \
+                libxcb-xkb1 libxkbcommon-x11-0
 
 .PHONY: run test test-python test-firmware firmware-build lint sysdeps venv clean bench
 
@@ -29,7 +33,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m pip install -q -e '.[dev,gui]'
 	touch $(STAMP)
 
 lint: venv

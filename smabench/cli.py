@@ -409,8 +409,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_export)
 
     from smabench.bench.headless import add_commands
+    from smabench.gui.app import add_commands as add_gui_commands
 
     add_commands(sub)
+    add_gui_commands(sub)
 
     s = sub.add_parser("bench", help="benchmarks that print figures")
     bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")

@@ -287,7 +287,8 @@ def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
         emit.line("E", {"status": "error", "reason": f"{type(exc).__name__}: {exc}"})
         emit.close()
         return 2
-    emit.line("P", {"driver": server.port, "sensor": server.spec, "device": server.info})
+    emit.line("P", {"driver": server.port, "sensor": server.spec, "device": server.info,
+                    "mock_pid": server.mock.proc.pid if server.mock else None})  # fmt: skip
     threading.Thread(target=server.status_loop, name="status", daemon=True).start()
     try:
         for line in stdin:

@@ -97,3 +97,12 @@ def test_lost_device_shows_an_error_and_the_gui_stays_usable(qtbot, win):
     _short_protocol(win)
     win.start_experiment()
     assert _wait_end(qtbot, win)["status"] == "completed"
+
+
+def test_bench_gui_frame_time_with_an_hour_of_data(qtbot):
+    """Short version of `smabench bench gui` (the README figures come from the full run)."""
+    from smabench.gui.bench_gui import frame_times
+
+    f = frame_times(n_frames=20)
+    assert f["hours"] > 0.99 and f["frames"] == 20
+    assert 0 < f["median_ms"] <= f["p99_ms"]

@@ -24,6 +24,22 @@ def thin(n: int, limit: int) -> slice:
     return slice(None, None, max(1, int(np.ceil(n / limit))))
 
 
+def keep_range(plot, axis: str, lo: float, hi: float, pad: float = 0.08) -> None:
+    """Set a view range only when the data leave it or fill less than half of it.
+
+    Axis items repaint (text and ticks, the most expensive part of a frame) whenever the range
+    moves, so a range that follows every new sample costs a full axis repaint per frame.
+    """
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        return
+    span = max(hi - lo, 1e-6)
+    (x0, x1), (y0, y1) = plot.viewRange()
+    cur_lo, cur_hi = (x0, x1) if axis == "x" else (y0, y1)
+    if lo < cur_lo or hi > cur_hi or (cur_hi - cur_lo) > 2.0 * span * (1 + 2 * pad):
+        setter = plot.setXRange if axis == "x" else plot.setYRange
+        setter(lo - pad * span, hi + pad * span, padding=0)
+
+
 class LoopPlot(pg.PlotWidget):
     """Position vs estimated temperature; finished cycles faded, the current one bright."""
 
@@ -31,22 +47,30 @@ class LoopPlot(pg.PlotWidget):
         super().__init__(parent)
         self.setLabel("bottom", "estimated wire temperature", units="°C")
         self.setLabel("left", "position", units="mm")
-        self.showGrid(x=True, y=True, alpha=0.3)
+        self.showGrid(x=False, y=False)
         self.addLegend(offset=(-10, 10))
         self.current = self.plot([], [], pen=pg.mkPen(BRIGHT, width=1), name="current cycle")
         dashed = pg.mkPen((20, 20, 20), width=1, style=QtCore.Qt.PenStyle.DashLine)
         self.model_curve = self.plot([], [], pen=dashed, name="model")
-        self.frozen: list[pg.PlotDataItem] = []
+        # finished cycles share one faded item (NaN between cycles): one paint call, not hundreds
+        self.frozen_item = self.plot([], [], pen=pg.mkPen(FADED, width=1), name="earlier cycles")
+        # drawn once into a pixmap, reused until the cycles or the view change
+        self.frozen_item.curve.setCacheMode(
+            QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
+        )
+        self.frozen: list[tuple[np.ndarray, np.ndarray]] = []
         self._cycle_start = 0
         self._cycle = None
+        self._bounds = None
+        self.disableAutoRange()
 
     def reset(self) -> None:
-        for item in self.frozen:
-            self.removeItem(item)
         self.frozen.clear()
+        self.frozen_item.setData([], [])
         self.current.setData([], [])
         self.model_curve.setData([], [])
         self._cycle_start, self._cycle = 0, None
+        self._bounds: tuple[float, float, float, float] | None = None
 
     def update_from(self, buf: SampleBuffer) -> None:
         n = buf.n
@@ -57,17 +81,37 @@ class LoopPlot(pg.PlotWidget):
             self._cycle = cycle[0]
         # freeze every cycle that has finished since the last frame
         changes = np.nonzero(cycle[self._cycle_start : n] != self._cycle)[0]
+        froze = False
         while changes.size:
             end = self._cycle_start + int(changes[0])
             sel = thin(end - self._cycle_start, LOOP_POINTS)
-            item = self.plot(temp[self._cycle_start : end][sel], pos[self._cycle_start : end][sel],
-                             pen=pg.mkPen(FADED, width=1))  # fmt: skip
-            self.frozen.append(item)
+            self.frozen.append((temp[self._cycle_start : end][sel].copy(),
+                                pos[self._cycle_start : end][sel].copy()))  # fmt: skip
             self._cycle_start, self._cycle = end, cycle[end]
             changes = np.nonzero(cycle[self._cycle_start : n] != self._cycle)[0]
+            froze = True
+        if froze:
+            gap = np.array([np.nan])
+            xs = np.concatenate([a for x, _ in self.frozen for a in (x, gap)])
+            ys = np.concatenate([a for _, y in self.frozen for a in (y, gap)])
+            self.frozen_item.setData(xs, ys, connect="finite")
         sel = thin(n - self._cycle_start, 4 * LOOP_POINTS)
         self.current.setData(temp[self._cycle_start : n][sel], pos[self._cycle_start : n][sel],
                              connect="finite")  # fmt: skip
+        self._grow(temp[self._cycle_start : n], pos[self._cycle_start : n])
+
+    def _grow(self, temp: np.ndarray, pos: np.ndarray) -> None:
+        """The view covers everything drawn so far (ranges kept from earlier cycles)."""
+        if temp.size == 0 or not np.isfinite(temp).any() or not np.isfinite(pos).any():
+            return
+        lo_t, hi_t = float(np.nanmin(temp)), float(np.nanmax(temp))
+        lo_y, hi_y = float(np.nanmin(pos)), float(np.nanmax(pos))
+        if self._bounds is not None:
+            lo_t, hi_t = min(lo_t, self._bounds[0]), max(hi_t, self._bounds[1])
+            lo_y, hi_y = min(lo_y, self._bounds[2]), max(hi_y, self._bounds[3])
+        self._bounds = (lo_t, hi_t, lo_y, hi_y)
+        keep_range(self.plotItem, "x", lo_t, hi_t, 0.03)
+        keep_range(self.plotItem, "y", lo_y, hi_y, 0.05)
 
     def show_model(self, temperature_c: np.ndarray, position_mm: np.ndarray) -> None:
         self.model_curve.setData(temperature_c, position_mm, connect="finite")
@@ -85,13 +129,16 @@ class TimePlots(pg.GraphicsLayoutWidget):
                                (self.p_temp, "temperature", "°C"),
                                (self.p_pos, "position", "mm")):  # fmt: skip
             p.setLabel("left", label, units=unit)
-            p.showGrid(x=True, y=True, alpha=0.3)
+            p.showGrid(x=False, y=False)
             p.setDownsampling(auto=True, mode="peak")
             p.setClipToView(True)
             p.addLegend(offset=(-10, 5))
+            p.disableAutoRange()
         self.p_temp.setXLink(self.p_current)
         self.p_pos.setXLink(self.p_current)
         self.p_pos.setLabel("bottom", "time", units="s")
+        self.p_current.hideAxis("bottom")
+        self.p_temp.hideAxis("bottom")
         self.c_set = self.p_current.plot(pen=pg.mkPen((150, 150, 150), width=1), name="set")
         self.c_meas = self.p_current.plot(pen=pg.mkPen(BRIGHT, width=1), name="measured")
         self.c_temp = self.p_temp.plot(pen=pg.mkPen((200, 40, 40), width=1), name="estimated")
@@ -114,5 +161,21 @@ class TimePlots(pg.GraphicsLayoutWidget):
                             (self.c_temp, "temperature_est_C"), (self.c_pos, "position_mm"),
                             (self.c_setpoint, "setpoint_mm")):  # fmt: skip
             curve.setData(t, buf.column(name)[i0:], connect="finite")
-        if self.follow:
-            self.p_current.setXRange(max(0.0, t[-1] - TIME_WINDOW_S), t[-1] + 1.0, padding=0)
+        if self.follow:  # page the time axis every tenth of a window, not every frame
+            x0, x1 = self.p_current.viewRange()[0]
+            if t[-1] > x1 or t[-1] < x0:
+                right = t[-1] + 0.1 * TIME_WINDOW_S
+                self.p_current.setXRange(max(0.0, right - TIME_WINDOW_S), right, padding=0)
+        for plot, names in ((self.p_current, ("current_set_A", "current_A")),
+                            (self.p_temp, ("temperature_est_C",)),
+                            (self.p_pos, ("position_mm", "setpoint_mm"))):  # fmt: skip
+            values = np.concatenate([buf.column(n)[i0:] for n in names])
+            if np.isfinite(values).any():
+                keep_range(plot, "y", float(np.nanmin(values)), float(np.nanmax(values)))
+
+    def show_all(self) -> None:
+        """Replay: everything in view."""
+        for p in (self.p_current, self.p_temp, self.p_pos):
+            p.enableAutoRange()
+            p.autoRange()
+            p.disableAutoRange()

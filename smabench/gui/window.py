@@ -515,7 +515,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.time_plots.follow = False
         self.loop_plot.update_from(self.buffer)
         self.time_plots.update_from(self.buffer)
-        self.time_plots.p_current.autoRange()
+        self.time_plots.show_all()
+        self.loop_plot.autoRange()
         self.opened = Path(folder)
         self.statusBar().showMessage(f"opened {Path(folder).name}: {len(s)} samples", 5000)
 

@@ -15,8 +15,10 @@ APT_PACKAGES := gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev pk
 
 .PHONY: run test test-python test-firmware firmware-build lint sysdeps venv clean bench
 
-run: venv
-	$(VENV)/bin/smabench demo
+# with a display: the GUI on the built-in mock bench; without: a headless session on it
+run: sysdeps venv
+	@if [ -n "$$DISPLAY$$WAYLAND_DISPLAY" ]; then $(VENV)/bin/smabench gui --mock; \
+	else $(VENV)/bin/smabench demo; fi
 
 test: sysdeps venv lint firmware-build test-python test-firmware
 

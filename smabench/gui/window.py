@@ -439,6 +439,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._set_running(False)
             if payload["status"] == "completed":
                 self.progress.setValue(1000)
+            el = float(self.status.get("elapsed_s", 0.0))
+            self.times.setText(f"elapsed {el:.0f} s   ended: {payload['status']}")
             text = f"{payload['status']}: {payload['reason']}"
             if payload.get("samples") is not None:
                 text += f" ({payload['samples']} samples)"

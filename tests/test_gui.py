@@ -106,3 +106,32 @@ def test_bench_gui_frame_time_with_an_hour_of_data(qtbot):
     f = frame_times(n_frames=20)
     assert f["hours"] > 0.99 and f["frames"] == 20
     assert 0 < f["median_ms"] <= f["p99_ms"]
+
+
+def test_controller_mode_switches_live(qtbot, win):
+    """A sine reference under PID, switched to FF+PID mid-run from the controller panel."""
+    from smabench.sessions import load_session
+
+    win.protocol.setCurrentText("sine")
+    win.cycles.setValue(1)
+    win.period_s.setValue(10.0)
+    win.amplitude_mm.setValue(0.6)
+    win.mode_buttons["pid"].setChecked(True)
+    win.start_experiment()
+    qtbot.waitUntil(lambda: win.status.get("mode") == "pid" and win.buffer.n > 100,
+                    timeout=30000)  # fmt: skip
+    qtbot.mouseClick(win.mode_buttons["ffpid"], QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: win.status.get("mode") == "ffpid", timeout=3000)
+    win.stop_experiment()
+    end = _wait_end(qtbot, win)
+    assert end["status"] == "stopped", end
+    s = load_session(end["folder"])
+    modes = list(dict.fromkeys(s.data["mode"]))
+    assert modes[:2] == ["pid", "ffpid"], modes
+    assert np.isfinite(s.data["setpoint_mm"]).all()
+    # bumpless: no step in the commanded current at the switch beyond the PID's own moves
+    i = s.data["current_set_A"]
+    k = int(np.argmax(s.data["mode"] == "ffpid"))
+    jump = abs(i[k] - i[k - 1])
+    usual = np.percentile(np.abs(np.diff(i[:k])), 99)
+    assert jump <= max(0.15, 2 * usual), (jump, usual)

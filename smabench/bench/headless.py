@@ -202,7 +202,28 @@ def settings_from_args(args: argparse.Namespace) -> RunSettings:
         partial_cool_s=args.partial_cool_s,
         inner_heat_s=args.inner_heat_s,
         inner_cool_s=args.inner_cool_s,
+        amplitude_mm=args.amplitude_mm,
+        offset_mm=args.offset_mm,
+        period_s=args.period_s,
+        lead_in_s=args.lead_in_s,
     )
+    controller = None
+    if args.controller is not None or args.switch_at:
+        from smabench.control import ControllerSettings, PIDGains, parse_switch
+
+        gains = None
+        if any(v is not None for v in (args.kp, args.ki, args.kd)):
+            if None in (args.kp, args.ki):
+                raise ValueError("give at least --kp and --ki (and optionally --kd)")
+            gains = PIDGains(args.kp, args.ki, args.kd or 0.0)
+        controller = ControllerSettings(
+            mode=args.controller or "pid",
+            gains=gains,
+            model=args.ff_model,
+            adapt=not args.no_adapt,
+            switches=[parse_switch(x) for x in args.switch_at],
+            cooling_limit=args.cooling_limit,
+        )
     settings = RunSettings(
         load_kg=args.load_kg,
         protocol=proto,
@@ -214,17 +235,26 @@ def settings_from_args(args: argparse.Namespace) -> RunSettings:
         out_dir=Path(args.out),
         session_id=args.session_id,
         time_scale=args.mock_speed if args.mock else 1.0,
+        controller=controller,
     )
     settings.validate()
     return settings
 
 
-def _progress_printer(protocol: Protocol, total: int, every_s: float = 1.0):
+def _progress_printer(protocol, total: int, every_s: float = 1.0):
     last = [-math.inf]
 
     def on_sample(row: dict) -> None:
         now = time.monotonic()
-        if now - last[0] >= every_s:
+        if now - last[0] >= every_s and row["setpoint_mm"] is not None:
+            last[0] = now
+            print(
+                f"  t {row['t_s']:7.1f} s  cycle {row['cycle'] + 1}/{total}  {row['mode']:9s} "
+                f"I {row['current_A']:.3f} A  T≈{row['temperature_est_C']:6.1f} °C  "
+                f"x {row['position_mm']:.4f} mm  set {row['setpoint_mm']:.4f} mm",
+                flush=True,
+            )
+        elif now - last[0] >= every_s:
             last[0] = now
             print(
                 f"  t {row['t_s']:7.1f} s  cycle {row['cycle'] + 1}/{total}  "
@@ -302,13 +332,25 @@ def cmd_run(args: argparse.Namespace) -> int:
             "sensor": {"spec": spec, "map": sensor.map.name},
             "mock": mock_args if args.mock else None,
         }
-        protocol = Protocol(settings.protocol)
         total = settings.protocol.cycles
-        print(
-            f"session: {settings.protocol.name}, {total} cycle(s) at {settings.protocol.current_a}"
-            f" A under {settings.load_kg} kg, {settings.rate_hz:g} Hz loop",
-            flush=True,
-        )
+        if settings.controller is not None:
+            protocol = settings.build_controller()
+            ref = protocol.info["reference"]
+            print(
+                f"session: {settings.protocol.name} reference, {total} period(s) of "
+                f"{ref['period_s']:g} s, {ref['offset_mm']:.3f} ± {ref['amplitude_mm']:g} mm "
+                f"under {settings.load_kg} kg, controller {protocol.mode}, "
+                f"{settings.rate_hz:g} Hz loop",
+                flush=True,
+            )
+        else:
+            protocol = Protocol(settings.protocol)
+            print(
+                f"session: {settings.protocol.name}, {total} cycle(s) at "
+                f"{settings.protocol.current_a} A under {settings.load_kg} kg, "
+                f"{settings.rate_hz:g} Hz loop",
+                flush=True,
+            )
         folder, result = run_session(
             settings,
             source,
@@ -374,6 +416,39 @@ def add_commands(sub) -> None:
     s.add_argument("--partial-cool-s", type=float, default=2.0, help="incomplete: cooling, s")
     s.add_argument("--inner-heat-s", type=float, default=0.4, help="inner: pulse heating, s")
     s.add_argument("--inner-cool-s", type=float, default=0.8, help="inner: pulse cooling, s")
+    ctl = s.add_argument_group("closed loop (position references: step, staircase, sine, triangle)")
+    ctl.add_argument(
+        "--controller",
+        choices=["open_loop", "pid", "ff", "ffpid"],
+        help="control law on the position reference given by --protocol",
+    )
+    ctl.add_argument(
+        "--switch-at",
+        action="append",
+        default=[],
+        metavar="S:MODE",
+        help="switch the law at S s of device time, e.g. 30:ff (repeatable)",
+    )
+    ctl.add_argument("--amplitude-mm", type=float, default=0.8, help="reference amplitude, mm")
+    ctl.add_argument(
+        "--offset-mm", type=float, help="reference offset, mm (default: middle of the stroke)"
+    )
+    ctl.add_argument("--period-s", type=float, default=20.0, help="reference period, s (20)")
+    ctl.add_argument(
+        "--lead-in-s", type=float, default=8.0, help="hold before the first period, s (8)"
+    )
+    ctl.add_argument("--kp", type=float, help="PID gain, W/mm (default: per-load table)")
+    ctl.add_argument("--ki", type=float, help="PID gain, W/(mm·s)")
+    ctl.add_argument("--kd", type=float, help="PID gain, W·s/mm")
+    ctl.add_argument(
+        "--ff-model", choices=["sigmoid", "1", "2"], default="sigmoid", help="feed-forward model"
+    )
+    ctl.add_argument("--no-adapt", action="store_true", help="no online model adaptation")
+    ctl.add_argument(
+        "--cooling-limit",
+        action="store_true",
+        help="limit the reference's rise to the wire's natural cooling rate",
+    )
     s.add_argument("--rate-hz", type=float, default=200.0, help="loop rate, Hz (200)")
     s.add_argument("--wire", default="paper", choices=sorted(PRESETS), help="wire preset")
     s.add_argument("--current-limit-a", type=float, default=2.0, help="interlock, A (2.0)")

@@ -11,6 +11,11 @@ The paper's three excitations plus steps and ramps:
 - ``step``: current steps through ``levels_a``, each held ``hold_s``.
 - ``ramp``: current ramps 0 → ``current_a`` → 0 over ``ramp_s`` each way, ``cycles`` times.
 
+Position references for the closed-loop controllers (:mod:`smabench.control`), ``cycles``
+periods of ``period_s`` about ``offset_mm`` with ``amplitude_mm``, after a ``lead_in_s`` hold:
+``step`` (with a controller: a square wave in position; without one: current steps),
+``staircase``, ``sine``, ``triangle``; see :class:`smabench.control.reference.Reference`.
+
 Each protocol is fed ``update(t_s, position_mm)`` at the loop rate and returns a
 :class:`ProtocolStep`; ``done`` is True once it has finished.
 """
@@ -24,7 +29,10 @@ from dataclasses import dataclass
 
 log = logging.getLogger(__name__)
 
-PROTOCOL_NAMES = ("cycles", "incomplete", "inner", "step", "ramp")
+PROTOCOL_NAMES = ("cycles", "incomplete", "inner", "step", "ramp", "staircase", "sine", "triangle")
+REFERENCE_NAMES = ("step", "staircase", "sine", "triangle")
+"""Protocols that are position references for a controller (``step`` is both)."""
+OPEN_LOOP_NAMES = ("cycles", "incomplete", "inner", "step", "ramp")
 
 
 @dataclass(frozen=True)
@@ -53,13 +61,39 @@ class ProtocolSettings:
     levels_a: tuple[float, ...] = (0.4, 0.8, 1.2, 0.8, 0.4, 0.0)
     hold_s: float = 4.0
     ramp_s: float = 5.0
+    # position references (closed loop)
+    amplitude_mm: float = 0.8
+    offset_mm: float | None = None  # None: the middle of the reachable stroke
+    period_s: float = 20.0
+    lead_in_s: float = 8.0
+    max_rise_mm_s: float | None = None  # natural-cooling limit told to the reference generator
 
-    def validate(self, max_current_a: float) -> None:
-        """Raise ValueError naming the setting that is out of range."""
+    def validate(self, max_current_a: float, closed_loop: bool = False) -> None:
+        """Raise ValueError naming the setting that is out of range. ``closed_loop``: the
+        protocol feeds a controller (a position reference) rather than the current directly."""
         if self.name not in PROTOCOL_NAMES:
             raise ValueError(
                 f"unknown protocol {self.name!r}; choose from {', '.join(PROTOCOL_NAMES)}"
             )
+        if closed_loop and self.name not in REFERENCE_NAMES:
+            raise ValueError(
+                f"protocol {self.name!r} is open loop; with a controller choose a reference: "
+                f"{', '.join(REFERENCE_NAMES)}"
+            )
+        if not closed_loop and self.name not in OPEN_LOOP_NAMES:
+            raise ValueError(
+                f"protocol {self.name!r} is a position reference: it needs a controller "
+                "(--controller pid|ff|ffpid)"
+            )
+        if closed_loop:
+            if not (math.isfinite(self.amplitude_mm) and 0.0 <= self.amplitude_mm <= 50.0):
+                raise ValueError(f"amplitude must be in 0 … 50 mm, got {self.amplitude_mm}")
+            if not 0.5 <= self.period_s <= 3600.0:
+                raise ValueError(f"period must be in 0.5 … 3600 s, got {self.period_s}")
+            if not 0.0 <= self.lead_in_s <= 600.0:
+                raise ValueError(f"lead-in must be in 0 … 600 s, got {self.lead_in_s}")
+            if self.max_rise_mm_s is not None and not self.max_rise_mm_s > 0:
+                raise ValueError(f"max_rise_mm_s must be > 0, got {self.max_rise_mm_s}")
         if not 1 <= self.cycles <= 10_000:
             raise ValueError(f"cycles must be in 1 … 10000, got {self.cycles}")
         currents = (self.current_a, *self.levels_a) if self.name == "step" else (self.current_a,)
@@ -109,6 +143,10 @@ class Protocol:
     """One run of a protocol; create anew for every run."""
 
     def __init__(self, settings: ProtocolSettings) -> None:
+        if settings.name not in OPEN_LOOP_NAMES:
+            raise ValueError(
+                f"protocol {settings.name!r} is a position reference: run it with a controller"
+            )
         self.s = settings
         self.cycle = 0
         self.phase = "heat"

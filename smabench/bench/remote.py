@@ -90,6 +90,15 @@ def settings_from_json(cfg: dict[str, Any]) -> RunSettings:
             s[key] = -math.inf if key.endswith("min_mm") else math.inf
     if "out_dir" in s:
         s["out_dir"] = Path(s["out_dir"])
+    ctl = s.pop("controller", None)
+    if ctl is not None:  # closed loop on a position reference
+        from smabench.control import ControllerSettings, PIDGains
+
+        ctl = dict(ctl)
+        gains = ctl.pop("gains", None)
+        s["controller"] = ControllerSettings(
+            gains=PIDGains(*gains) if gains is not None else None, **ctl
+        )
     settings = RunSettings(protocol=ProtocolSettings(**proto), **s)
     settings.validate()
     return settings
@@ -160,7 +169,8 @@ class BenchServer:
         self.info = dataclasses.asdict(self.source.info)
         self.runtime = None
         self.command: PausableCommand | None = None
-        self.protocol: Protocol | None = None
+        self.protocol: Any = None  # a Protocol, or a Controller on a reference
+        self.last_row: dict[str, Any] = {}
         self.settings: RunSettings | None = None
         self._session: threading.Thread | None = None
         self._t0 = time.monotonic()
@@ -176,9 +186,21 @@ class BenchServer:
         settings = settings_from_json(settings_cfg)
         settings.validate(device_limit_a=self.source.info.hard_limit_a)
         self.source.clear_faults()
-        self.protocol = Protocol(settings.protocol)
-        self.command = PausableCommand(self.protocol)
+        if settings.controller is not None:  # the controller is the command; no pause
+            self.protocol = settings.build_controller()
+            self.command = None
+            command = self.protocol
+        else:
+            self.protocol = Protocol(settings.protocol)
+            self.command = PausableCommand(self.protocol)
+            command = self.command
         self.settings = settings
+        self.last_row: dict[str, Any] = {}
+
+        def on_sample(row: dict) -> None:
+            self.last_row = row
+            self.emit.rows.put(row)
+
         self.runtime = None
         ready = threading.Event()
         self._t0 = time.monotonic()
@@ -193,7 +215,7 @@ class BenchServer:
                 folder, result = run_session(
                     settings, self.source, self.sensor,
                     {"port": self.port, "sensor": self.spec, "device": self.info},
-                    on_sample=self.emit.rows.put, command=self.command, on_start=on_start,
+                    on_sample=on_sample, command=command, on_start=on_start,
                 )  # fmt: skip
                 end = {"status": result.status, "reason": result.reason,
                        "samples": result.samples, "folder": str(folder)}  # fmt: skip
@@ -227,7 +249,9 @@ class BenchServer:
                     self.source.make_safe()
             elif cmd == "stop" and rt is not None:
                 rt.stop()
-            elif cmd in ("pause", "resume") and self.command is not None:
+            elif cmd in ("pause", "resume") and rt is not None:
+                if self.command is None:
+                    raise ValueError("pause is for open-loop protocols, not a position reference")
                 self.command.pause(cmd == "pause")
             elif cmd == "mode" and rt is not None:
                 rt.set_mode(rest.strip())
@@ -249,12 +273,19 @@ class BenchServer:
             "sensor_stats": dict(self.sensor.stats),
         }
         if self.protocol is not None and self.settings is not None:
+            row = self.last_row
+            if self.command is not None:  # open-loop protocol
+                phase = "paused" if self.command.paused else self.protocol.phase
+                progress = self.protocol.progress
+            else:  # controller on a reference: progress in device time
+                phase = "tracking"
+                progress = min(1.0, row.get("t_s", 0.0) / self.protocol.reference.duration_s)
             st.update(
                 elapsed_s=time.monotonic() - self._t0,
-                cycle=self.protocol.cycle,
+                cycle=int(row.get("cycle") or 0),
                 cycles=self.settings.protocol.cycles,
-                phase="paused" if self.command.paused else self.protocol.phase,
-                progress=self.protocol.progress,
+                phase=phase,
+                progress=progress,
                 mode=getattr(self.runtime, "mode", "open_loop"),
             )
         return st

@@ -1,7 +1,9 @@
 """The bench runtime: one fixed-rate loop that owns both device clients (no Qt here).
 
 Each tick: read the displacement sensor, take the latest driver telemetry, estimate the wire
-temperature online, ask the active command source (a protocol, later a controller) for a current,
+temperature online, ask the active command source (a protocol, or a
+:class:`smabench.control.controller.Controller`, which is first given the estimate through
+``observe``) for a current,
 check the interlocks, command the current, record the sample. The period is measured, not
 assumed: ``t_s`` is the sample's own clock reading and every period is kept for the jitter
 figures.
@@ -95,14 +97,17 @@ class BenchRuntime:
         command: CommandSource,
         record: Callable[[dict], None],
         config: RuntimeConfig | None = None,
-        mode: str = "open_loop",
+        mode: str | None = None,
         on_sample: Callable[[dict], None] | None = None,
     ) -> None:
         self.source, self.sensor, self.command = source, sensor, command
         self.record = record
         self.config = config or RuntimeConfig()
         self.config.validate()
-        self.mode = mode
+        self._mode_lock = threading.Lock()
+        self._mode = "open_loop"
+        if mode is not None:
+            self.set_mode(mode)
         self.on_sample = on_sample
         self.estimator = TemperatureEstimator(self.config.wire, self.config.ambient_c)
         self._estop = threading.Event()
@@ -111,6 +116,41 @@ class BenchRuntime:
         self.result: RunResult | None = None
 
     # ------------------------------------------------------------------ control from outside
+    @property
+    def mode(self) -> str:
+        """Active control law: ``open_loop``, ``pid``, ``ff`` or ``ffpid`` (a pending switch
+        already counts)."""
+        if hasattr(self.command, "set_mode"):
+            return self.command.mode
+        with self._mode_lock:
+            return self._mode
+
+    def set_mode(self, mode: str) -> None:
+        """Switch the control law (thread-safe; from the next tick, bumpless).
+
+        ValueError on an unknown mode, or on a closed-loop mode when the command source is not
+        a controller with a reference (and the law's parts) configured."""
+        from smabench.control.controller import MODES
+
+        if mode not in MODES:
+            raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+        if hasattr(self.command, "set_mode"):
+            self.command.set_mode(mode)
+            return
+        if mode != "open_loop":
+            raise ValueError(
+                f"mode {mode!r} needs a controller with a position reference; this session "
+                "runs an open-loop protocol"
+            )
+        with self._mode_lock:
+            self._mode = mode
+
+    def set_gains(self, kp: float, ki: float, kd: float) -> None:
+        """New PID gains (W/mm, W/(mm·s), W·s/mm) from the next tick (thread-safe)."""
+        if not hasattr(self.command, "set_gains"):
+            raise ValueError("this session has no PID controller")
+        self.command.set_gains(kp, ki, kd)
+
     def estop(self) -> None:
         """Emergency stop: devices safe now, session ends as aborted."""
         self._estop.set()
@@ -216,6 +256,14 @@ class BenchRuntime:
                     dt_s, current_a if math.isfinite(current_a) else 0.0, voltage_v, ambient_c
                 )
 
+                observe = getattr(self.command, "observe", None)
+                if observe is not None:  # a controller: the estimate it plans with
+                    observe(
+                        temperature_c,
+                        ambient_c,
+                        self.estimator.measured_resistance_ohm,
+                        position_mm if math.isfinite(position_mm) else None,
+                    )
                 step = self.command.update(t_s, position_mm)
                 current_set_a = float(step.current_set_a)
                 interlock = self._interlock(current_set_a, temperature_c, position_mm)
@@ -231,7 +279,7 @@ class BenchRuntime:
                     "position_mm": position_mm,
                     "setpoint_mm": getattr(step, "setpoint_mm", None),
                     "temperature_est_C": temperature_c,
-                    "mode": self.mode,
+                    "mode": getattr(step, "mode", None) or self.mode,
                     "cycle": step.cycle,
                     "flags": flags,
                 }

@@ -43,6 +43,7 @@ class RunSettings:
     out_dir: Path = Path("sessions")
     session_id: str | None = None
     time_scale: float = 1.0  # > 1 only against a mock bench run faster than real time
+    controller: Any = None  # smabench.control.ControllerSettings: closed loop on a reference
 
     def validate(self, device_limit_a: float | None = None) -> None:
         """Raise ValueError naming the first setting that is out of range."""
@@ -58,8 +59,24 @@ class RunSettings:
             limit = min(limit, device_limit_a)
         if not 0.0 < self.current_limit_a <= wire.max_current_a * 1.25:
             raise ValueError(f"current limit {self.current_limit_a} A is out of range")
-        self.protocol.validate(limit)
+        self.protocol.validate(limit, closed_loop=self.controller is not None)
         self.runtime_config().validate()
+        if self.controller is not None:
+            self.controller.validate()
+            self.build_controller()  # refuses unreachable setpoints before any device opens
+
+    def build_controller(self):
+        """The session's controller (identifies the loop model; ValueError when refused)."""
+        from smabench.control.factory import build_controller
+
+        return build_controller(
+            self.protocol,
+            self.controller,
+            self.load_kg,
+            PRESETS[self.wire_preset],
+            self.current_limit_a,
+            self.temperature_limit_c,
+        )
 
     def runtime_config(self) -> RuntimeConfig:
         return RuntimeConfig(
@@ -80,7 +97,9 @@ class RunSettings:
         return Path(self.out_dir) / sid
 
 
-def session_meta(settings: RunSettings, devices: dict[str, Any]) -> dict[str, Any]:
+def session_meta(
+    settings: RunSettings, devices: dict[str, Any], controller: dict | None = None
+) -> dict[str, Any]:
     """``session.json`` content at the start of a run (session contract, DESIGN §3)."""
     wire = PRESETS[settings.wire_preset]
     proto = asdict(settings.protocol)
@@ -97,7 +116,7 @@ def session_meta(settings: RunSettings, devices: dict[str, Any]) -> dict[str, An
         },
         "devices": devices,
         "protocol": proto,
-        "controller": {"mode": "open_loop"},
+        "controller": controller or {"mode": "open_loop"},
         "loop": {"rate_hz": settings.rate_hz, "time_scale": settings.time_scale},
         "limits": {
             "current_limit_a": settings.current_limit_a,
@@ -120,12 +139,22 @@ def run_session(
     """Run a validated session on connected devices; returns (folder, result).
 
     ``source``/``sensor`` are connected device clients; they are made safe at the end whatever
-    happens. ``command`` defaults to the protocol from the settings. ``on_start(runtime)`` is
+    happens. ``command`` defaults to the settings' controller (closed loop; the gains, the
+    reference and the identified model go into ``session.json``) or else their protocol.
+    ``on_start(runtime)`` is
     called before the loop starts (to e-stop, stop or switch modes from another thread).
     """
     folder = settings.folder()
-    writer = SessionWriter(folder, session_meta(settings, devices or {}))
-    command = command or Protocol(settings.protocol)
+    if command is None:
+        command = (
+            settings.build_controller()
+            if settings.controller is not None
+            else Protocol(settings.protocol)
+        )
+    describe = getattr(command, "describe", None)
+    writer = SessionWriter(
+        folder, session_meta(settings, devices or {}, describe() if describe else None)
+    )
     runtime = BenchRuntime(
         source, sensor, command, writer.append, settings.runtime_config(), on_sample=on_sample
     )
@@ -145,5 +174,7 @@ def run_session(
                     "mean": float(periods.mean() * 1e3),
                     "p99": float(sorted(periods)[int(0.99 * (periods.size - 1))] * 1e3),
                 }
+            if describe is not None:  # gains, adapted model and switches as they ended
+                extra["controller_end"] = describe()
             writer.close(result.status, result.reason, **extra)
     return folder, result

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from smabench.bench.protocols import PROTOCOL_NAMES
+from smabench.bench.protocols import PROTOCOL_NAMES, REFERENCE_NAMES
 from smabench.gui.link import RuntimeLink, SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
 
@@ -55,6 +55,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_end: dict[str, Any] | None = None
         self.last_error = ""
         self.frame_times_s: list[float] = []
+        self.custom_gains: list[float] | None = None  # None: the per-load gain table
         self._build(mock_speed)
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.on_frame)
@@ -175,12 +176,20 @@ class MainWindow(QtWidgets.QMainWindow):
         self.partial_cool_s = _spin(0.1, 600, 2.0, 0.5, 1, "s")
         self.inner_heat_s = _spin(0.05, 60, 0.4, 0.1, 2, "s")
         self.inner_cool_s = _spin(0.05, 60, 0.8, 0.1, 2, "s")
+        # position references (step, staircase, sine, triangle) under a closed-loop law
+        self.amplitude_mm = _spin(0.05, 5, 0.8, 0.1, 2, "mm")
+        self.offset_mm = _spin(-0.01, 60, -0.01, 0.1, 2, "mm")
+        self.offset_mm.setSpecialValueText("middle of the stroke")
+        self.period_s = _spin(1, 3600, 20, 1, 1, "s")
         for label, w in (("load", self.load_kg), ("protocol", self.protocol),
                          ("cycles", self.cycles), ("current", self.current_a),
                          ("heat time", self.heat_s), ("max cool time", self.cool_s),
                          ("incomplete: cool", self.partial_cool_s),
                          ("inner: heat", self.inner_heat_s),
-                         ("inner: cool", self.inner_cool_s)):  # fmt: skip
+                         ("inner: cool", self.inner_cool_s),
+                         ("reference amplitude", self.amplitude_mm),
+                         ("reference offset", self.offset_mm),
+                         ("reference period", self.period_s)):  # fmt: skip
             form.addRow(label, w)
         buttons = QtWidgets.QHBoxLayout()
         self.start_button = QtWidgets.QPushButton("Start")
@@ -217,13 +226,16 @@ class MainWindow(QtWidgets.QMainWindow):
             b.clicked.connect(lambda _=False, m=mode: self.set_mode(m))
         self.mode_buttons["open_loop"].setChecked(True)
         form.addRow(row)
-        self.kp = _spin(0, 1000, 2.0, 0.1, 3)
-        self.ki = _spin(0, 1000, 1.0, 0.1, 3)
-        self.kd = _spin(0, 1000, 0.0, 0.01, 3)
+        from smabench.control import gains_for_load
+
+        g = gains_for_load(2.0)
+        self.kp = _spin(0, 100, g.kp, 0.01, 3)
+        self.ki = _spin(0, 100, g.ki, 0.01, 3)
+        self.kd = _spin(0, 100, g.kd, 0.01, 3)
         form.addRow("Kp (W/mm)", self.kp)
         form.addRow("Ki (W/(mm·s))", self.ki)
         form.addRow("Kd (W·s/mm)", self.kd)
-        apply = QtWidgets.QPushButton("Apply gains")
+        apply = QtWidgets.QPushButton("Apply gains (default: per-load table)")
         apply.clicked.connect(self.apply_gains)
         form.addRow(apply)
         self.setpoint_label = QtWidgets.QLabel("setpoint –")
@@ -324,8 +336,16 @@ class MainWindow(QtWidgets.QMainWindow):
         return self.link is not None and self.link.alive and self.link.ports is not None
 
     # ------------------------------------------------------------------ experiment
+    def selected_mode(self) -> str:
+        return next((m for m, b in self.mode_buttons.items() if b.isChecked()), "open_loop")
+
     def settings_dict(self) -> dict[str, Any]:
-        return {
+        """The session's settings; a closed-loop law with a position reference when one of
+        PID, FF, FF+PID is selected and the protocol is a reference."""
+        mode = self.selected_mode()
+        closed = mode != "open_loop" and self.protocol.currentText() in REFERENCE_NAMES
+        offset = self.offset_mm.value()
+        out = {
             "load_kg": self.load_kg.value(),
             "out_dir": str(self.sessions_dir),
             "time_scale": self.mock_speed.value() if self.use_mock.isChecked() else 1.0,
@@ -338,8 +358,14 @@ class MainWindow(QtWidgets.QMainWindow):
                 "partial_cool_s": self.partial_cool_s.value(),
                 "inner_heat_s": self.inner_heat_s.value(),
                 "inner_cool_s": self.inner_cool_s.value(),
+                "amplitude_mm": self.amplitude_mm.value(),
+                "offset_mm": None if offset <= self.offset_mm.minimum() else offset,
+                "period_s": self.period_s.value(),
             },
         }
+        if closed:
+            out["controller"] = {"mode": mode, "gains": self.custom_gains}
+        return out
 
     def start_experiment(self) -> None:
         """Start a session (connecting first, or reconnecting a mock whose load changed)."""
@@ -355,8 +381,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.last_end = None
         self.end_label.setText("")
         self.pause_button.setChecked(False)
-        self.link.start(self.settings_dict())
-        self.mode_buttons["open_loop"].setChecked(True)
+        settings = self.settings_dict()
+        if "controller" not in settings:
+            self.mode_buttons["open_loop"].setChecked(True)
+        self.link.start(settings)
         self._set_running(True)
 
     def wait_connected(self, timeout_s: float) -> bool:
@@ -392,8 +420,10 @@ class MainWindow(QtWidgets.QMainWindow):
             self.link.send(f"mode {mode}")
 
     def apply_gains(self) -> None:
-        if self.link is not None and self.link.alive:
-            self.link.send(f"gains {self.kp.value()} {self.ki.value()} {self.kd.value()}")
+        """Use these gains from now on (live when running; for the next session anyway)."""
+        self.custom_gains = [self.kp.value(), self.ki.value(), self.kd.value()]
+        if self.link is not None and self.link.alive and self.running:
+            self.link.send("gains " + " ".join(map(str, self.custom_gains)))
 
     def _set_running(self, running: bool) -> None:
         self.running = running

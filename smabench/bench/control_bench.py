@@ -1,0 +1,251 @@
+"""``smabench bench control``: tracking of PID, FF and FF+PID on the mock bench.
+
+Every case is a recorded session against its own ``smabench mock`` process over the real
+transports (current driver on a pty, laser sensor on Modbus TCP), the mock running ``speed`` ×
+faster than real time (the runtime records device time). References: a square-wave ``step``, a
+``staircase``, a slow ``sine`` (period 20 s) and a faster one (10 s), each ``offset ± 0.8 mm``
+about the middle of the reachable stroke, under 1, 2 and 4 kg; once on the nominal plant and once
+with latent heat switched on in the mock (``latent_heat=24000`` J/kg), which the controller's
+loop model (identified from the nominal plant) does not know.
+
+Figures, over the samples after the lead-in: RMS and maximum of position − setpoint (mm and % of
+the wire's stroke, the model's cold − hot position), and for steps the mean settling time after
+each setpoint edge (error inside ±2 % of the stroke from then until the next edge), with the
+number of edges that settled.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+LOADS_KG = (1.0, 2.0, 4.0)
+CONTROLLERS = ("pid", "ff", "ffpid")
+EFFECTS = ("", "latent_heat=24000")
+
+
+@dataclass(frozen=True)
+class Case:
+    ref: str  # label
+    kind: str
+    period_s: float
+    cycles: int
+    load_kg: float
+    controller: str
+    effect: str = ""
+
+
+REFERENCES = {
+    "step": ("step", 30.0, 2),
+    "staircase": ("staircase", 40.0, 1),
+    "sine 20 s": ("sine", 20.0, 2),
+    "sine 10 s": ("sine", 10.0, 3),
+}
+
+
+def all_cases(loads=LOADS_KG, refs=tuple(REFERENCES), effects=EFFECTS, controllers=CONTROLLERS):
+    return [
+        Case(r, *REFERENCES[r], load, c, e)
+        for e in effects
+        for r in refs
+        for load in loads
+        for c in controllers
+    ]
+
+
+def run_case(case: Case, speed: float = 5.0, rate_hz: float = 400.0) -> dict:
+    """One session on its own mock; returns the figures."""
+    from smabench.bench.headless import MockProcess, open_devices
+    from smabench.bench.protocols import ProtocolSettings
+    from smabench.bench.session_run import RunSettings, run_session
+    from smabench.control import ControllerSettings
+    from smabench.sessions import load_session
+
+    proto = ProtocolSettings(
+        name=case.kind, cycles=case.cycles, period_s=case.period_s, amplitude_mm=0.8
+    )
+    with tempfile.TemporaryDirectory(prefix="smabench-bench-control-") as tmp:
+        settings = RunSettings(
+            load_kg=case.load_kg,
+            protocol=proto,
+            rate_hz=rate_hz,
+            out_dir=Path(tmp),
+            session_id="case",
+            time_scale=speed,
+            max_duration_s=600.0,
+            controller=ControllerSettings(mode=case.controller),
+        )
+        settings.validate()
+        controller = settings.build_controller()
+        mock_args = ["--load-kg", f"{case.load_kg:g}", "--speed", f"{speed:g}"]
+        if case.effect:
+            mock_args += ["--effect", case.effect]
+        with MockProcess(mock_args) as mock:
+            source, sensor = open_devices(mock.ports.driver, mock.ports.sensor_tcp, settings)
+            try:
+                folder, result = run_session(settings, source, sensor, command=controller)
+            finally:
+                source.close()
+                sensor.close()
+        data = load_session(folder).data
+    if result.status != "completed":
+        raise RuntimeError(f"{case}: session ended {result.status}: {result.reason}")
+    lo, hi = controller.ff.inverse.reachable_mm(0.0)
+    return {**case.__dict__, **figures(data, controller.reference, hi - lo),
+            "missed": result.missed_deadlines, "samples": result.samples}  # fmt: skip
+
+
+def figures(data: dict, reference, stroke_mm: float) -> dict:
+    """RMS/max error and step settling from a recorded session."""
+    t = np.asarray(data["t_s"], dtype=float)
+    y = np.asarray(data["position_mm"], dtype=float)
+    sp = np.asarray(data["setpoint_mm"], dtype=float)
+    t0 = t[0]
+    m = (t - t0 >= reference.s.lead_in_s) & np.isfinite(y) & np.isfinite(sp)
+    e = y[m] - sp[m]
+    out = {
+        "stroke_mm": stroke_mm,
+        "rms_mm": float(np.sqrt(np.mean(e**2))),
+        "max_mm": float(np.max(np.abs(e))),
+    }
+    out["rms_pct"] = 100.0 * out["rms_mm"] / stroke_mm
+    out["max_pct"] = 100.0 * out["max_mm"] / stroke_mm
+    edges = reference.edges_s()
+    if edges:
+        band = 0.02 * stroke_mm
+        times = []
+        for k, te in enumerate(edges):
+            t_end = edges[k + 1] if k + 1 < len(edges) else reference.duration_s
+            w = (t - t0 >= te) & (t - t0 < t_end) & np.isfinite(y)
+            if w.sum() < 3:
+                continue
+            err = np.abs(y[w] - sp[w])
+            outside = np.nonzero(err > band)[0]
+            if outside.size == 0:
+                times.append(0.0)
+            elif outside[-1] < err.size - 1:
+                times.append(float(t[w][outside[-1] + 1] - t0 - te))
+            else:
+                times.append(math.nan)
+        ok = [x for x in times if math.isfinite(x)]
+        out["settle_s"] = float(np.mean(ok)) if ok else math.nan
+        out["settled"] = f"{len(ok)}/{len(times)}"
+    return out
+
+
+def format_table(rows: list[dict]) -> str:
+    head = (
+        f"{'reference':10s} {'load':>4s} {'plant':9s} {'ctrl':6s} {'RMS mm':>7s} {'RMS %':>6s} "
+        f"{'max mm':>7s} {'max %':>6s} {'settle s':>8s} {'settled':>7s}"
+    )
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        settle = (
+            f"{r['settle_s']:8.2f} {r['settled']:>7s}" if "settle_s" in r else f"{'':8s} {'':7s}"
+        )
+        lines.append(
+            f"{r['ref']:10s} {r['load_kg']:4.0f} {'latent' if r['effect'] else 'nominal':9s} "
+            f"{r['controller']:6s} {r['rms_mm']:7.3f} {r['rms_pct']:6.1f} {r['max_mm']:7.3f} "
+            f"{r['max_pct']:6.1f} {settle}"
+        )
+    lines.append("")
+    lines.append("FF+PID RMS / PID RMS (target ≤ 0.5 on the sines, ≤ 1 on steps):")
+    by = {(r["ref"], r["load_kg"], r["effect"], r["controller"]): r for r in rows}
+    for (ref, load, eff, c), r in by.items():
+        if c != "ffpid" or (ref, load, eff, "pid") not in by:
+            continue
+        ratio = r["rms_mm"] / by[(ref, load, eff, "pid")]["rms_mm"]
+        target = 0.5 if ref.startswith("sine") else 1.0
+        lines.append(
+            f"  {ref:10s} {load:4.0f} kg {'latent' if eff else 'nominal':8s} {ratio:5.2f}"
+            f"  {'met' if ratio <= target else 'NOT met'}"
+        )
+    return "\n".join(lines)
+
+
+def _run(args_case):
+    case, speed, rate = args_case
+    try:
+        return run_case(case, speed, rate)
+    except Exception as exc:  # keep the other cases going; report the failure
+        log.exception("case %s failed", case)
+        return {**case.__dict__, "error": f"{type(exc).__name__}: {exc}"}
+
+
+def bench_control(
+    cases: list[Case], speed: float = 5.0, rate_hz: float = 400.0, jobs: int = 1,
+    progress: Path | None = None, table_out: Path | None = None,
+) -> list[dict]:  # fmt: skip
+    """Run the cases (``jobs`` at a time, each with its own mock); rows in case order."""
+    rows: list[dict] = []
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        for row in pool.map(_run, [(c, speed, rate_hz) for c in cases]):
+            rows.append(row)
+            if "error" in row:
+                print(f"  {row['ref']} {row['load_kg']:g} kg {row['controller']}: {row['error']}",
+                      flush=True)  # fmt: skip
+            else:
+                print(f"  {row['ref']:10s} {row['load_kg']:g} kg {row['effect'] or 'nominal':18s} "
+                      f"{row['controller']:6s} RMS {row['rms_mm']:.3f} mm", flush=True)  # fmt: skip
+            if progress is not None:
+                progress.write_text(json.dumps(rows, indent=1))
+            if table_out is not None:  # partial results survive an interruption
+                done = [r for r in rows if "error" not in r]
+                table_out.write_text(format_table(done) + "\n", encoding="utf-8")
+    return rows
+
+
+def cmd_bench_control(args: argparse.Namespace) -> int:
+    loads = tuple(args.loads) if args.loads else LOADS_KG
+    refs = tuple(args.refs) if args.refs else tuple(REFERENCES)
+    effects = ("",) if args.nominal_only else EFFECTS
+    cases = all_cases(loads, refs, effects)
+    print(f"bench control: {len(cases)} sessions on the mock at {args.speed:g}×, "
+          f"{args.rate_hz:g} Hz loop, {args.jobs} at a time", flush=True)  # fmt: skip
+    rows = bench_control(cases, args.speed, args.rate_hz, args.jobs,
+                         Path(args.json) if args.json else None,
+                         Path(args.out) if args.out else None)  # fmt: skip
+    good = [r for r in rows if "error" not in r]
+    table = format_table(good)
+    print(table)
+    if args.out:
+        Path(args.out).write_text(table + "\n", encoding="utf-8")
+    return 0 if len(good) == len(rows) else 1
+
+
+def add_bench_control(bsub) -> None:
+    """Register ``control`` on the ``smabench bench`` subparsers."""
+    b = bsub.add_parser(
+        "control", help="tracking of PID, FF and FF+PID on the mock bench (real transports)"
+    )
+    b.add_argument("--speed", type=float, default=5.0, help="mock speed (5×)")
+    b.add_argument("--rate-hz", type=float, default=400.0, help="loop rate, wall Hz (400)")
+    b.add_argument("--jobs", type=int, default=1, help="sessions at a time (1)")
+    b.add_argument("--loads", type=float, nargs="+", help="loads, kg (1 2 4)")
+    b.add_argument("--refs", nargs="+", choices=list(REFERENCES), help="references (all)")
+    b.add_argument("--nominal-only", action="store_true", help="skip the latent-heat plant")
+    b.add_argument("--out", help="also write the table to this file")
+    b.add_argument("--json", help="write the rows as JSON (updated after every case)")
+    b.set_defaults(func=cmd_bench_control)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="smabench bench")
+    add_bench_control(p.add_subparsers(dest="cmd", required=True))
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

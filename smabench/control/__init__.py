@@ -1,0 +1,18 @@
+"""Position control of the SMA wire: PID, feed-forward (inverse loop model + inverse heat
+balance), FF+PID, online model adaptation, references and live bumpless switching."""
+
+from smabench.control.controller import MODES, Controller, ControlStep, parse_switch
+from smabench.control.factory import ControllerSettings, build_controller
+from smabench.control.pid import PID, PIDGains, gains_for_load
+
+__all__ = [
+    "MODES",
+    "PID",
+    "ControlStep",
+    "Controller",
+    "ControllerSettings",
+    "PIDGains",
+    "build_controller",
+    "gains_for_load",
+    "parse_switch",
+]

@@ -1,0 +1,329 @@
+"""The controller's loop model of the wire under load, and its online inverse.
+
+Identification (:func:`identify_loop_model`): the model is fitted to an identification cycle
+simulated with :func:`smabench.physics.plant.simulate_plant` for the configured wire and load —
+two slow ramps of the heating power (0 → the power that holds 100 °C → 0 over 30 s each way,
+then 10 s of passive cooling), slow enough that the loop is close to the quasi-static one the
+controller moves along — with **no plant effects switched on**, whatever the bench runs with: the
+controller's model never knows latent heat, sensor lag etc. The temperature axis is the one the
+runtime estimates online (the heat balance driven by the current, :mod:`smabench.physics.thermal`),
+the length axis the simulated sensor reading (with its noise). The identification could equally
+be run on the bench (a ``ramp`` session fed to :func:`fit_from_samples`); the simulated cycle is
+the default because it costs 0.2 s and needs no wire time.
+
+Inverse (:class:`InverseLoop`): position setpoint → temperature on the branch that the motion
+needs (the setpoint falling = the wire shortening = heating branch; rising = cooling branch).
+Reversal points follow the rules of :class:`~smabench.physics.loop_models.LoopStepper`:
+an incomplete cycle moves the first common point to the reversal point (the branch runs from
+there to the major common point); with ``memory`` > 1 the older reversal points are kept as
+well, so inner loops head for the previous reversal point and are wiped out when it is passed.
+The default keeps one point: the references here do not nest loops, and a stack of measured
+points drifts apart from the model's when the wire lags the reference.
+
+Online adaptation, as in the paper:
+
+- at a reversal the reversal point is taken from the wire — its extreme on the branch just
+  left (the runtime's temperature estimate and the measured position at that sample) — not
+  from the model, so the new branch starts where the wire really turned (the first common
+  point of the new branch is updated);
+- the first measured values on each new branch (``refit_samples`` samples once the branch has
+  moved clear of the reversal) refit the branch amplitude — the deviation of the branch from the
+  chord between its start and target point — by one-parameter least squares; the refit scale is
+  used for the rest of the branch and carried (averaged) to the next branch of the same
+  direction, so the model follows the wire during a run.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from smabench.physics.identify import FitResult, fit_loop
+from smabench.physics.plant import simulate_plant
+from smabench.physics.thermal import current_for_steady_temperature, simulate_temperature
+from smabench.physics.wire import PAPER_WIRE, Wire
+
+log = logging.getLogger(__name__)
+
+Point = tuple[float, float]  # (temperature °C, position mm)
+
+IDENT_HOT_C = 100.0
+IDENT_RAMP_S = 30.0
+IDENT_DT_S = 0.01
+
+
+def identification_profile(
+    wire: Wire = PAPER_WIRE, ambient_c: float = 22.0, dt_s: float = IDENT_DT_S
+) -> tuple[np.ndarray, np.ndarray]:
+    """Current profile of the identification cycle: two slow ramp cycles; (t_s, current_a)."""
+    i_hot = float(current_for_steady_temperature(IDENT_HOT_C, wire, ambient_c))
+    n = int(round(IDENT_RAMP_S / dt_s))
+    up = np.sqrt(np.linspace(0.0, 1.0, n)) * i_hot  # linear in power: even heating rates
+    one = np.concatenate([up, np.full(n // 10, i_hot), up[::-1], np.zeros(n // 3)])
+    cur = np.concatenate([one, one])
+    return np.arange(cur.size) * dt_s, cur
+
+
+def identify_loop_model(
+    load_kg: float,
+    wire: Wire = PAPER_WIRE,
+    model: str = "sigmoid",
+    ambient_c: float = 22.0,
+    seed: int = 1,
+) -> FitResult:
+    """Fit ``model`` (``sigmoid``, ``1`` or ``2``) to the simulated identification cycle of the
+    nominal plant (no effects) under ``load_kg``; the fit uses the second cycle (history-free)."""
+    t, cur = identification_profile(wire, ambient_c)
+    trace = simulate_plant(t, cur, load_kg=load_kg, wire=wire, ambient_c=ambient_c, seed=seed)
+    temp = simulate_temperature(t, cur, wire, ambient_c)
+    half = t.size // 2
+    return fit_from_samples(temp[half:], trace.position_mm[half:], model)
+
+
+def fit_from_samples(temperature_c, position_mm, model: str = "sigmoid") -> FitResult:
+    """Fit a loop model to measured (estimated temperature, position) samples of a cycle."""
+    result = fit_loop(temperature_c, position_mm, model)
+    log.info("controller loop model %s: %.2f %% of stroke", model, result.nrmse_percent)
+    return result
+
+
+def _common_points(model) -> tuple[Point, Point]:
+    cp = model.common_points() if hasattr(model, "common_points") else model.cp
+    return (cp.t1_c, cp.y1_mm), (cp.t2_c, cp.y2_mm)
+
+
+@dataclass
+class _Table:
+    key: tuple
+    y: np.ndarray  # increasing
+    t: np.ndarray
+
+
+@dataclass
+class InverseLoop:
+    """Online inverse of a loop model with reversal memory and adaptation (module docstring).
+
+    ``t_min_c`` / ``t_max_c``: coldest (ambient) and hottest temperature the controller may use.
+    ``deadband_mm``: the setpoint must move back this far from its extreme to count as a
+    reversal. ``adapt``: take reversal points from the wire and refit amplitudes.
+    """
+
+    model: object
+    t_min_c: float
+    t_max_c: float
+    deadband_mm: float = 0.003
+    adapt: bool = True
+    refit_samples: int = 12
+    table_points: int = 97
+    memory: int = 1  # reversal points kept: 1 = the paper's moved first common point only
+    flat_fraction: float = 0.004  # "no motion" band at a branch start, fraction of the stroke
+    heating: bool = True
+    stack: list[Point] = field(default_factory=list)
+    scale: dict[bool, float] = field(default_factory=lambda: {True: 1.0, False: 1.0})
+
+    def __post_init__(self) -> None:
+        self.low, self.high = _common_points(self.model)
+        self._tables: dict[tuple, _Table] = {}  # branch tables by key (shared with previews)
+        self._ext_y: float | None = None
+        self._ext_t = self.t_min_c
+        self._branch_scale = 1.0
+        self._table: _Table | None = None
+        self._obs: list[Point] = []
+        self._refit_done = False
+        self._wire_point: Point | None = None
+        self._wire_ext: Point | None = None  # the wire's extreme on the current branch
+        self.reversals = 0
+        self.refits: list[float] = []
+
+    # ----------------------------------------------------------------- geometry
+    def forward(self, t_c: float, heating: bool) -> float:
+        """Model position on the major branch at temperature ``t_c``."""
+        start, target = (self.low, self.high) if heating else (self.high, self.low)
+        return float(self.model.branch(float(t_c), heating, start, target))
+
+    def reachable_mm(self, margin_fraction: float = 0.1) -> tuple[float, float]:
+        """(shortest, longest) position the controller can hold: the hot end at ``t_max_c`` and
+        the cold end at ``t_min_c`` + 1 K, each moved inward by ``margin_fraction`` of the
+        stroke (near the ends the wire barely moves with temperature)."""
+        grid = np.linspace(self.t_min_c + 1.0, self.t_max_c, 200)
+        ys = [self.forward(t, h) for t in grid for h in (True, False)]
+        lo, hi = float(min(ys)), float(max(ys))
+        m = margin_fraction * (hi - lo)
+        return lo + m, hi - m
+
+    def _start_target(self) -> tuple[Point, Point]:
+        if self.heating:
+            start = self.stack[-1] if self.stack else self.low
+            target = self.stack[-2] if len(self.stack) >= 2 else self.high
+        else:
+            start = self.stack[-1] if self.stack else self.high
+            target = self.stack[-2] if len(self.stack) >= 2 else self.low
+        return start, target
+
+    def _branch_y(self, t: float, start: Point, target: Point, s: float) -> float:
+        y = float(self.model.branch(t, self.heating, start, target))
+        if s != 1.0 and target[0] != start[0]:
+            u = (t - start[0]) / (target[0] - start[0])
+            if 0.0 <= u <= 1.0:
+                chord = start[1] + u * (target[1] - start[1])
+                y = chord + s * (y - chord)
+        return y
+
+    def _get_table(self) -> _Table:
+        start, target = self._start_target()
+        inner = len(self.stack) >= 2
+        if self.heating:
+            t_end = target[0] if inner else self.t_max_c
+        else:
+            t_end = target[0] if inner else self.t_min_c
+        key = (self.heating, start, target, t_end, self._branch_scale)
+        if self._table is not None and self._table.key == key:
+            return self._table
+        cached = self._tables.get(key)
+        if cached is not None:
+            self._table = cached
+            return cached
+        t0 = start[0]
+        if (t_end - t0) * (1 if self.heating else -1) <= 1e-6:
+            t_end = t0 + (1e-3 if self.heating else -1e-3)
+        ts = np.linspace(t0, t_end, self.table_points)
+        ys = np.array([self._branch_y(float(t), start, target, self._branch_scale) for t in ts])
+        ys[0] = start[1]
+        k = np.arange(ys.size) * 1e-9
+        # monotone envelope: heating, position falls with T; cooling (T decreasing), it rises
+        ys = np.minimum.accumulate(ys) - k if self.heating else np.maximum.accumulate(ys) + k
+        order = np.argsort(ys)
+        self._table = _Table(key, ys[order], ts[order])
+        if len(self._tables) > 64:
+            self._tables.clear()
+        self._tables[key] = self._table
+        return self._table
+
+    def _invert(self, y: float) -> float:
+        """Temperature for ``y`` on the current branch. A setpoint behind the branch's start
+        (not reachable in this direction, e.g. right after a reversal inside the hysteresis
+        gap) maps to the end of the flat part next to the start — where the branch starts to
+        move — rather than to the start itself: the wire crosses the gap at once."""
+        tab = self._get_table()
+        tol = self.flat_fraction * abs(self.high[1] - self.low[1])
+        if self.heating:
+            y_start = tab.y[-1]
+            if y >= y_start - tol:
+                k = int(np.searchsorted(tab.y, y_start - tol))
+                return float(tab.t[min(max(k - 1, 0), tab.t.size - 1)])
+        else:
+            y_start = tab.y[0]
+            if y <= y_start + tol:
+                k = int(np.searchsorted(tab.y, y_start + tol))
+                return float(tab.t[min(k, tab.t.size - 1)])
+        return float(np.interp(y, tab.y, tab.t))
+
+    # ----------------------------------------------------------------- online
+    def observe(self, temperature_c: float, position_mm: float) -> None:
+        """The wire's state this tick (estimated temperature, measured position)."""
+        if not (math.isfinite(temperature_c) and math.isfinite(position_mm)):
+            return
+        self._wire_point = (float(temperature_c), float(position_mm))
+        ext = self._wire_ext
+        if ext is None or (temperature_c > ext[0] if self.heating else temperature_c < ext[0]):
+            self._wire_ext = self._wire_point
+        if not self.adapt or self._refit_done:
+            return
+        start, target = self._start_target()
+        span = target[0] - start[0]
+        if abs(span) < 1.0:
+            return
+        u = (temperature_c - start[0]) / span
+        if 0.05 < u < 0.95:
+            self._obs.append(self._wire_point)
+            if len(self._obs) >= self.refit_samples:
+                self._refit(start, target)
+
+    def _refit(self, start: Point, target: Point) -> None:
+        self._refit_done = True
+        ts = np.array([p[0] for p in self._obs])
+        ym = np.array([p[1] for p in self._obs])
+        u = (ts - start[0]) / (target[0] - start[0])
+        chord = start[1] + u * (target[1] - start[1])
+        dev = np.array([self.model.branch(float(t), self.heating, start, target) for t in ts])
+        dev = dev - chord
+        denom = float(np.dot(dev, dev))
+        stroke = abs(self.high[1] - self.low[1])
+        if denom < (0.03 * stroke) ** 2 * len(ts):
+            return  # the branch is too close to its chord here: amplitude not observable
+        s = float(np.clip(np.dot(dev, ym - chord) / denom, 0.5, 2.0))
+        self._branch_scale = s
+        self.scale[self.heating] = 0.5 * (self.scale[self.heating] + s)
+        self.refits.append(s)
+
+    def _reverse(self, y_ext: float) -> None:
+        if self.adapt and self._wire_ext is not None:
+            point = self._wire_ext
+        else:
+            point = (self._invert(y_ext), y_ext)
+        self.heating = not self.heating
+        self.reversals += 1
+        if point[0] >= self.high[0] or point[0] <= self.low[0]:
+            self.stack.clear()
+        else:
+            self.stack.append(point)
+            del self.stack[: max(0, len(self.stack) - self.memory)]
+        self._branch_scale = self.scale[self.heating]
+        self._obs = []
+        self._refit_done = False
+        self._wire_ext = self._wire_point
+
+    def _wipe(self, y: float) -> None:
+        while len(self.stack) >= 2 and (
+            (self.heating and y < self.stack[-2][1]) or (not self.heating and y > self.stack[-2][1])
+        ):
+            del self.stack[-2:]
+
+    def temperature(self, y_sp: float, commit: bool = True) -> float:
+        """Temperature (°C) for position setpoint ``y_sp`` (mm). With ``commit`` the direction
+        and reversal memory advance (once per tick); without, a look-ahead on the current
+        branch that leaves the state alone."""
+        y = float(y_sp)
+        if not commit:
+            return self._invert(y)
+        if self._ext_y is None:
+            self._ext_y = y
+        elif self.heating:
+            if y <= self._ext_y:
+                self._ext_y = y
+            elif y - self._ext_y > self.deadband_mm:
+                self._reverse(self._ext_y)
+                self._ext_y = y
+        else:
+            if y >= self._ext_y:
+                self._ext_y = y
+            elif self._ext_y - y > self.deadband_mm:
+                self._reverse(self._ext_y)
+                self._ext_y = y
+        self._wipe(y)
+        return self._invert(y)
+
+    def preview(self, ys) -> list[float]:
+        """Temperatures for a future setpoint sequence, reversals included, without touching
+        this inverse's state (reversal points from the model, no refit)."""
+        p = copy.copy(self)
+        p.stack = list(self.stack)
+        p.scale = dict(self.scale)
+        p.adapt = False
+        p._wire_point = p._wire_ext = None
+        p._refit_done = True
+        return [p.temperature(y, commit=True) for y in ys]
+
+    def state(self) -> dict:
+        return {
+            "heating": self.heating,
+            "stack": [list(p) for p in self.stack],
+            "scale_heating": self.scale[True],
+            "scale_cooling": self.scale[False],
+            "reversals": self.reversals,
+            "refits": len(self.refits),
+        }

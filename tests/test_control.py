@@ -1,0 +1,247 @@
+"""Controllers: PID anti-windup, FF inverse round trip, bumpless switching, refused setpoints,
+the runtime's mode interface, and a smoke run of ``smabench bench control`` on the mock."""
+
+from __future__ import annotations
+
+import math
+import threading
+
+import numpy as np
+import pytest
+
+from smabench.bench.protocols import ProtocolSettings
+from smabench.bench.runtime import BenchRuntime
+from smabench.control import ControllerSettings, PIDGains, build_controller, parse_switch
+from smabench.control.controller import MODES
+from smabench.control.factory import loop_model_for
+from smabench.control.model import InverseLoop
+from smabench.control.pid import PID
+from smabench.control.sim import run_closed_loop
+from smabench.physics.wire import PAPER_WIRE
+
+
+def make(mode="ffpid", kind="sine", period=20.0, load=2.0, **kw):
+    p = ProtocolSettings(name=kind, cycles=2, period_s=period, amplitude_mm=kw.pop("amp", 0.8))
+    return build_controller(p, ControllerSettings(mode=mode, **kw), load, PAPER_WIRE, 2.0)
+
+
+# --------------------------------------------------------------------------- PID
+def test_integrator_does_not_wind_up_while_saturated_or_cooling_passively():
+    pid = PID(PIDGains(0.3, 0.2, 0.0))
+    # wire far too long for 100 s with the output at its maximum: the integral stays bounded
+    for _ in range(10_000):
+        out = pid.update(0.01, setpoint=0.5, measurement=2.5, out_min_w=0.0, out_max_w=1.0)
+    assert out == 1.0 and pid.integral_w <= 1.0 + 1e-12
+    # the error changes sign: the output leaves the limit at once (no wound-up integral)
+    out = pid.update(0.01, setpoint=2.5, measurement=2.4, out_min_w=0.0, out_max_w=1.0)
+    assert out < 1.0
+    # passive cooling: wire too short, output pinned at 0 for 100 s
+    pid = PID(PIDGains(0.3, 0.2, 0.0))
+    for _ in range(10_000):
+        out = pid.update(0.01, setpoint=2.0, measurement=0.5, out_min_w=0.0, out_max_w=1.0)
+    assert out == 0.0 and pid.integral_w >= -1e-12
+    out = pid.update(0.01, setpoint=0.5, measurement=0.6, out_min_w=0.0, out_max_w=1.0)
+    assert out > 0.0  # heats on the first tick the wire is too long again
+
+
+def test_integrator_windup_in_closed_loop_with_an_unreachable_hold():
+    """A long hold the wire cannot follow (current limit 0.6 A), then a reachable setpoint:
+    with anti-windup the PID reaches it without the overshoot a wound-up integral gives."""
+    c = make("pid", kind="step", period=60.0)
+    c.current_limit_a = 0.6  # far too little to reach the hot setpoint
+    tr = run_closed_loop(c, 2.0, 38.0, dt_s=0.02)
+    hot = (tr.t_s > 8.0) & (tr.t_s < 38.0)
+    assert np.all(tr.current_a[hot] <= 0.6 + 1e-9)
+    assert abs(c.pid.integral_w) <= 0.6**2 * PAPER_WIRE.resistance_mean_ohm + 1e-9
+
+
+def test_derivative_acts_on_the_measurement_not_on_setpoint_steps():
+    pid = PID(PIDGains(0.0, 0.0, 1.0, 0.1))
+    pid.update(0.01, 1.0, 1.0, 0.0, 10.0)
+    out = pid.update(0.01, 0.0, 1.0, 0.0, 10.0)  # setpoint step, measurement still
+    assert out == 0.0
+
+
+# --------------------------------------------------------------------------- feed-forward
+@pytest.mark.parametrize("load", [1.0, 4.0])
+def test_ff_inverse_round_trips_with_the_forward_model(load):
+    fit = loop_model_for(load, PAPER_WIRE, "sigmoid")
+    inv = InverseLoop(fit.loop_model, 22.0, 120.0, adapt=False)
+    lo, hi = inv.reachable_mm()
+    for heating in (True, False):
+        for y in np.linspace(lo, hi, 15):
+            fresh = InverseLoop(fit.loop_model, 22.0, 120.0, adapt=False, heating=heating)
+            t = fresh.temperature(y)
+            assert fresh.forward(t, heating) == pytest.approx(y, abs=0.01 * (hi - lo))
+    # and temperature → position → temperature inside the steep part of each branch
+    for heating, temps in ((True, (68.0, 70.0, 72.0)), (False, (46.0, 48.0, 50.0))):
+        for t in temps:
+            y = inv.forward(t, heating)
+            fresh = InverseLoop(fit.loop_model, 22.0, 120.0, adapt=False, heating=heating)
+            assert fresh.temperature(y) == pytest.approx(t, abs=0.3)
+
+
+def test_ff_power_inverts_the_heat_balance_and_never_goes_negative():
+    c = make("ff")
+    ff = c.ff
+    ff.sync(60.0)
+    t_next = 61.0
+    p = ff.power(0.02, t_next, 5.0)
+    ff.advance(0.02, p)
+    assert ff.t_ff_c == pytest.approx(t_next, abs=1e-9)
+    ff.sync(90.0)
+    assert ff.power(0.02, 40.0, 5.0) == 0.0  # faster than natural cooling: passive, not < 0
+
+
+def test_tracking_ffpid_beats_pid_on_a_sine_in_simulation():
+    rms = {}
+    for mode in ("pid", "ffpid"):
+        c = make(mode)
+        tr = run_closed_loop(c, 2.0, 60.0, dt_s=0.02)
+        m = tr.t_s >= 8.0
+        rms[mode] = float(np.sqrt(np.mean((tr.position_mm[m] - tr.setpoint_mm[m]) ** 2)))
+    assert rms["ffpid"] <= 0.75 * rms["pid"], rms
+
+
+def test_adaptation_moves_the_first_common_point_to_the_wire_reversal():
+    c = make("ffpid")
+    run_closed_loop(c, 2.0, 60.0, dt_s=0.02)
+    inv = c.ff.inverse
+    assert inv.reversals >= 3 and inv.refits
+    # the reversal points come from the wire (estimated T, measured position)
+    assert all(inv.low[0] < t < inv.high[0] for t, _ in inv.stack)
+
+
+# --------------------------------------------------------------------------- switching
+def test_switching_modes_mid_run_leaves_no_current_jump():
+    c = make("pid")
+    plan = {700: "ff", 1000: "ffpid", 1400: "open_loop", 1600: "pid", 2000: "ffpid"}
+    switch_ticks = []
+
+    def on_tick(k, t):
+        if k in plan:
+            c.set_mode(plan[k])
+            switch_ticks.append(k)
+
+    tr = run_closed_loop(c, 2.0, 70.0, dt_s=0.02, on_tick=on_tick)
+    i = tr.current_a
+    assert [tr.mode[k] for k in switch_ticks] == list(plan.values())
+    steps = np.abs(np.diff(i))
+    typical = np.percentile(steps, 95)
+    for k in switch_ticks:
+        # the commanded current at the switching tick equals the previous command
+        assert abs(i[k] - i[k - 1]) <= max(0.02, typical), (k, tr.mode[k], i[k - 1], i[k])
+
+
+def test_scripted_switches_and_mode_validation():
+    assert parse_switch("30:ff") == (30.0, "ff")
+    with pytest.raises(ValueError, match="unknown mode"):
+        parse_switch("30:bang")
+    with pytest.raises(ValueError, match="S:MODE"):
+        parse_switch("soon:pid")
+    c = make("pid", switches=[(10.0, "ff"), (20.0, "ffpid")])
+    tr = run_closed_loop(c, 2.0, 30.0, dt_s=0.05)
+    assert tr.mode[int(5 / 0.05)] == "pid"
+    assert tr.mode[int(15 / 0.05)] == "ff" and tr.mode[int(25 / 0.05)] == "ffpid"
+    with pytest.raises(ValueError, match="unknown mode"):
+        c.set_mode("bang")
+
+
+def test_setpoints_outside_the_reachable_stroke_are_refused():
+    with pytest.raises(ValueError, match="outside the reachable stroke"):
+        make("pid", amp=5.0)
+    p = ProtocolSettings(name="sine", amplitude_mm=0.2, offset_mm=4.0)
+    with pytest.raises(ValueError, match=r"setpoints 3\.800 … 4\.200 mm are outside"):
+        build_controller(p, ControllerSettings(), 2.0, PAPER_WIRE, 2.0)
+
+
+def test_reference_protocols_need_a_controller():
+    with pytest.raises(ValueError, match="needs a controller"):
+        ProtocolSettings(name="sine").validate(2.0)
+    with pytest.raises(ValueError, match="open loop"):
+        ProtocolSettings(name="cycles").validate(2.0, closed_loop=True)
+
+
+# --------------------------------------------------------------------------- runtime interface
+class _Dummy:
+    def make_safe(self):
+        pass
+
+
+def test_runtime_mode_interface_is_validated_and_thread_safe():
+    c = make("pid")
+    rt = BenchRuntime(_Dummy(), _Dummy(), c, lambda row: None)
+    assert rt.mode == "pid"
+    threads = [threading.Thread(target=rt.set_mode, args=(m,)) for m in ("ff", "ffpid")]
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    assert rt.mode in ("ff", "ffpid")
+    rt.set_gains(0.2, 0.05, 0.0)
+    with pytest.raises(ValueError, match="unknown mode"):
+        rt.set_mode("turbo")
+    with pytest.raises(ValueError):
+        rt.set_gains(-1.0, 0.0, 0.0)
+    # an open-loop protocol: only open_loop is accepted
+    from smabench.bench.protocols import Protocol
+
+    rt2 = BenchRuntime(_Dummy(), _Dummy(), Protocol(ProtocolSettings()), lambda row: None)
+    assert rt2.mode == "open_loop"
+    with pytest.raises(ValueError, match="needs a controller"):
+        rt2.set_mode("pid")
+    with pytest.raises(ValueError, match="no PID"):
+        rt2.set_gains(0.1, 0.1, 0.0)
+    # a controller without a reference refuses closed-loop modes
+    from smabench.control import Controller
+
+    bare = Controller(PAPER_WIRE, 2.0, mode="open_loop")
+    with pytest.raises(ValueError, match="reference"):
+        bare.set_mode("pid")
+
+
+def test_gains_are_stored_with_the_session_description():
+    c = make("ffpid")
+    d = c.describe()
+    assert d["gains"]["kp"] > 0 and d["load_kg"] == 2.0
+    assert d["reference"]["kind"] == "sine" and "reachable_mm" in d
+    assert d["model"]["identified_from"].startswith("simulate_plant")
+
+
+def test_ceiling_limits_the_temperature():
+    c = make("ff", amp=0.8)
+    tr = run_closed_loop(c, 2.0, 40.0, dt_s=0.02)
+    assert tr.estimate_c.max() <= c.t_ceiling_c + 0.5
+    assert math.isfinite(tr.position_mm[-1])
+
+
+# --------------------------------------------------------------------------- on the mock bench
+def test_bench_control_smoke_on_the_mock(tmp_path):
+    from smabench.bench.control_bench import Case, format_table, run_case
+
+    row = run_case(Case("sine 10 s", "sine", 10.0, 1, 2.0, "ffpid"), speed=10.0, rate_hz=200.0)
+    assert row["samples"] > 100 and 0.0 < row["rms_mm"] < 1.0
+    step = run_case(Case("step", "step", 20.0, 1, 2.0, "pid"), speed=10.0, rate_hz=200.0)
+    assert "settle_s" in step and step["settled"].endswith("/2")
+    text = format_table([row, step])
+    assert "RMS mm" in text and "sine 10 s" in text
+
+
+def test_run_cli_closed_loop_with_switch(run_cli, tmp_path):
+    proc = run_cli(
+        "run", "--mock", "--mock-speed", "10", "--load-kg", "2", "--protocol", "sine",
+        "--controller", "pid", "--period-s", "10", "--cycles", "1", "--lead-in-s", "3",
+        "--switch-at", "8:ffpid", "--out", tmp_path, "--session-id", "s", "--quiet",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    from smabench.sessions import load_session
+
+    s = load_session(tmp_path / "s")
+    modes = list(s.data["mode"])
+    assert modes[0] == "pid" and modes[-1] == "ffpid"
+    assert s.meta["controller"]["gains"]["kp"] > 0
+    assert np.isfinite(np.asarray(s.data["setpoint_mm"], dtype=float)).all()
+    bad = run_cli("run", "--mock", "--load-kg", "2", "--protocol", "sine", "--controller",
+                  "pid", "--amplitude-mm", "9", "--out", tmp_path)  # fmt: skip
+    assert bad.returncode != 0 and "reachable stroke" in bad.stderr
+    assert MODES == ("open_loop", "pid", "ff", "ffpid")

@@ -272,8 +272,10 @@ def open_devices(
     settings: RunSettings,
     sensor_map: str = "generic-rs485-laser",
     sensor_timeout_s: float = 0.05,
+    unit_id: int | None = None,
 ):
     """Connect the current driver and the sensor for a session; returns (source, sensor).
+    ``unit_id`` overrides the register map's Modbus unit id.
 
     The settings are checked again against the driver's hard limit before anything but the
     handshake is sent; latched faults from before the session are cleared.
@@ -292,7 +294,9 @@ def open_devices(
         info = source.connect()
         settings.validate(device_limit_a=info.hard_limit_a)
         source.clear_faults()
-        sensor = DisplacementSensor(sensor_map, spec, timeout_s=sensor_timeout_s, retries=0)
+        sensor = DisplacementSensor(
+            sensor_map, spec, timeout_s=sensor_timeout_s, retries=0, unit_id=unit_id
+        )
         sensor.connect()
     except BaseException:
         source.close()

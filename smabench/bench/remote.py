@@ -164,8 +164,9 @@ class BenchServer:
         # devices are opened with permissive settings; each session checks its own
         probe = RunSettings(load_kg=1.0, time_scale=float(devices_cfg.get("time_scale", 1.0)))
         self.source, self.sensor = open_devices(
-            self.port, self.spec, probe, devices_cfg.get("sensor_map", "generic-rs485-laser")
-        )
+            self.port, self.spec, probe, devices_cfg.get("sensor_map", "generic-rs485-laser"),
+            unit_id=devices_cfg.get("unit_id"),
+        )  # fmt: skip
         self.info = dataclasses.asdict(self.source.info)
         self.runtime = None
         self.command: PausableCommand | None = None

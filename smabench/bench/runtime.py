@@ -152,9 +152,15 @@ class BenchRuntime:
         self.command.set_gains(kp, ki, kd)
 
     def estop(self) -> None:
-        """Emergency stop: devices safe now, session ends as aborted."""
+        """Emergency stop: the current driver's output off now (from any thread: the driver
+        client is thread-safe), the session ends as aborted and the loop then makes both
+        devices safe. The sensor is passive and its client belongs to the loop thread, so it is
+        not touched from here."""
         self._estop.set()
-        self._safe_all()
+        try:
+            self.source.make_safe()
+        except Exception:  # make_safe must never stop the e-stop
+            log.exception("make_safe failed on %r", self.source)
 
     def stop(self) -> None:
         """Ask the loop to finish after the current tick (devices made safe)."""

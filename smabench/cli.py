@@ -413,6 +413,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_commands(sub)
     add_gui_commands(sub)
+    from smabench.analysis.cli import add_commands as add_analysis_commands
+
+    add_analysis_commands(sub)
 
     s = sub.add_parser("bench", help="benchmarks that print figures")
     bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")

@@ -1,0 +1,127 @@
+"""``smabench analyze SESSION [SESSION ...]``: where our simulation is wrong, and why.
+
+Wire it in with ``add_commands(sub)``; ``python -m smabench.analysis.cli ...`` runs it alone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from collections.abc import Sequence
+
+from smabench.analysis.data import AnalysisError
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not v > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+    return v
+
+
+def add_arguments(s: argparse.ArgumentParser) -> None:
+    s.add_argument("sessions", nargs="+", metavar="SESSION", help="session folders or CSVs")
+    s.add_argument("--json", metavar="OUT", help="write the verdict, RMSEs and parameters here")
+    s.add_argument("--report", metavar="DIR", help="write report.md and PNG plots here")
+    s.add_argument("--predictions", metavar="OUT.csv", help="write measured/baseline/extended")
+    s.add_argument("--load-kg", type=_positive, help="hanging load, kg (overrides session.json)")
+    s.add_argument("--wire-length-mm", type=_positive, help="wire length, mm (overrides)")
+    s.add_argument("--wire-diameter-mm", type=_positive, help="wire diameter, mm (overrides)")
+    s.add_argument(
+        "--candidates",
+        help="comma-separated candidate causes to try (default: all that apply); asking for "
+        "stress_shift with one load is an error",
+    )
+    s.add_argument("--workers", type=int, help="processes for the candidate fits (default: CPUs)")
+    s.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
+
+
+def add_commands(sub) -> None:
+    """Register ``analyze`` on an argparse subparsers object."""
+    s = sub.add_parser(
+        "analyze",
+        help="find where the simulation is wrong and name the physical cause",
+        description=__doc__,
+    )
+    add_arguments(s)
+    s.set_defaults(func=cmd_analyze)
+
+
+def cmd_analyze(args: argparse.Namespace) -> int:
+    from smabench.analysis.core import analyse
+    from smabench.analysis.data import prepare_session
+    from smabench.analysis.report import summary, write_json, write_predictions, write_report
+    from smabench.sessions import load_session
+
+    t0 = time.perf_counter()
+    say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
+    if len(args.sessions) > 1 and args.load_kg is not None:
+        raise AnalysisError("--load-kg applies to one session only; give each its session.json")
+    sessions = [
+        prepare_session(load_session(p), args.load_kg, args.wire_length_mm, args.wire_diameter_mm)
+        for p in args.sessions
+    ]
+    t_load = time.perf_counter() - t0
+    n = sum(len(s.t) for s in sessions)
+    say(f"{len(sessions)} session(s), {n} samples, loaded in {t_load:.2f} s")
+    cands = None
+    if args.candidates:
+        cands = [c.strip() for c in args.candidates.split(",") if c.strip()]
+    an = analyse(sessions, cands, progress=say, workers=args.workers)
+    doc = summary(an)
+    doc["timing_s"]["load"] = t_load
+    print(f"cause: {doc['cause']}   runner-up: {doc['runner_up']}   ({doc['reason']})")
+    print(
+        f"held-out RMSE: baseline {doc['baseline_heldout_rmse_mm']:.4g} mm, extended "
+        f"({doc['extended_model']}) {doc['extended_heldout_rmse_mm']:.4g} mm, "
+        f"gain {doc['gain']:.1%}"
+    )
+    if not args.quiet:
+        for c, row in doc["candidates"].items():
+            (pname, pv), = row["parameter"].items()
+            val, unc = pv.get("value"), pv.get("uncertainty")
+            ptxt = f"{val:.4g} ± {unc:.2g} {pv.get('unit', '')}" if val is not None and \
+                unc is not None else str(val)  # fmt: skip
+            print(f"  {c:22s} rmse {row['heldout_rmse_mm']:.4g} mm  gain {row['gain']:7.1%}  "
+                  f"p {row['p_value']:.2g}  {pname} = {ptxt}")  # fmt: skip
+        for c, why in doc["skipped_candidates"].items():
+            print(f"  {c:22s} not tried: {why}")
+        ls = doc.get("loop_shift_check")
+        if ls and ls.get("stress_rate_mpa_per_k"):
+            fit = doc["candidates"].get("stress_shift", {}).get("parameter", {})
+            fv = fit.get("stress_rate_mpa_per_k", {})
+            print(f"stress rate: fitted {fv.get('value', float('nan')):.3g} ± "
+                  f"{fv.get('uncertainty') or float('nan'):.2g} MPa/K; loops' own mid-"
+                  f"transformation shift {ls['stress_rate_mpa_per_k']:.3g} MPa/K")  # fmt: skip
+    if args.json:
+        write_json(args.json, doc)
+        say(f"json written: {args.json}")
+    if args.predictions:
+        write_predictions(args.predictions, an, doc["extended_model"])
+        say(f"predictions written: {args.predictions}")
+    if args.report:
+        md = write_report(args.report, an, doc)
+        say(f"report written: {md}")
+    print(f"analysis time: {time.perf_counter() - t0:.1f} s for {n} samples")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="smabench analyze", description=__doc__)
+    add_arguments(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(cmd_analyze(args) or 0)
+    except (ValueError, OSError) as exc:
+        print(f"smabench analyze: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,787 @@
+"""Discrepancy analysis: baseline fit, held-out simulation, candidate extensions, the verdict.
+
+Protocol (see ``docs/analysis-flexinol.md`` for a worked example):
+
+1. Folds. One load: the first two thirds of every session's complete cycles train, the rest is
+   held out (a single-cycle session splits at two thirds of its samples). Two loads: leave one
+   load out — one fold per load holds out that load's last third and trains on everything else
+   (the other load, and the first two thirds of this one: with two loads alone a stress slope
+   could not be fitted otherwise). Three loads or more: leave one load out entirely (the held-out
+   sessions only get their sensor zero from their first samples).
+2. Every model (the baseline and each candidate extension) is fitted by ``least_squares`` on the
+   training part and then simulated from the input alone (current, or measured temperature) over
+   the whole session; the held-out error is taken on the held-out samples.
+3. Verdict: per held-out unit (a cycle, or a block of one when there are few) the RMSE of the
+   baseline and of each extension; a one-sided Wilcoxon signed-rank test across the units and a
+   minimum gain decide whether an extension removes structure. ``none`` when none does and the
+   baseline is within its noise/accuracy floor, ``unexplained`` when structure remains that no
+   candidate removes, or when the best two candidates cannot be told apart.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import multiprocessing
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.stats import wilcoxon
+
+from smabench.analysis.data import AnalysisError, SessionData, make_grid
+from smabench.analysis.model import (
+    CANDIDATES,
+    COUPLED,
+    CP_J_KGK,
+    Grid,
+    Temps,
+    directions,
+    simulate,
+)
+
+log = logging.getLogger(__name__)
+
+ALPHA = 0.01
+"""Significance level of the one-sided paired test (extension better than the baseline)."""
+MIN_GAIN = 0.15
+"""An extension must cut the held-out RMSE by at least this fraction to be named."""
+SEPARATION = 0.5
+"""The runner-up must reach less than this fraction of the winner's gain (or lose a paired test
+against it) for the winner to be named; otherwise the verdict is ``unexplained``."""
+FLOOR_NOISE = 3.0
+FLOOR_STROKE = 0.005
+"""The baseline leaves structure when its held-out RMSE exceeds both FLOOR_NOISE × the sensor
+noise and FLOOR_STROKE × the stroke (half the paper's loop-model accuracy of about 1 %)."""
+FIT_GRID_MAX = 12000
+"""Most grid points a fit simulates per session (longer sessions get a coarser fitting grid)."""
+FIT_DT_MIN = 0.05
+
+# name: (scale, lo, hi, start)
+_BASE = {
+    "tau_s": (4.0, 0.2, 120.0, 4.0),
+    "h_mid": (10.0, -50.0, 250.0, 70.0),
+    "h_w": (10.0, 0.5, 80.0, 10.0),
+    "c_mid": (10.0, -50.0, 250.0, 50.0),
+    "c_w": (10.0, 0.5, 80.0, 10.0),
+    "tau_heat_s": (0.1, 0.0, 5.0, 0.05),
+    "tau_cool_s": (0.5, 0.0, 5.0, 0.2),
+    "shrink_k_per_mpa": (0.03, 0.0, 0.1, 0.0),
+}
+_EXT = {
+    "phase_resistance": {"beta": (0.2, -0.8, 0.8, 0.05)},
+    "latent_heat": {"lat_k": (20.0, 0.0, 80.0, 10.0)},
+    "stress_shift": {"ss_k_per_mpa": (0.1, -0.3, 1.0, 0.1)},
+    "convection_nonlinear": {"conv_k": (0.005, 0.0, 0.1, 0.003)},
+    "sensor_lag": {"lag_s": (0.2, 0.0, 10.0, 0.2)},
+    "ambient_drift": {"drift_k_h": (5.0, -60.0, 60.0, 0.0)},
+    "cycle_drift": {"cyc_rate": (2e-4, -3e-3, 3e-3, 0.0), "cyc_nsat": (20.0, 1.0, 1000.0, 30.0)},
+}
+
+
+@dataclass
+class Fold:
+    name: str
+    train: dict[str, np.ndarray]  # session name → bool mask over its samples
+    test: dict[str, np.ndarray]
+
+
+@dataclass
+class FitResult:
+    model: str
+    names: list[str]
+    x: np.ndarray
+    se: np.ndarray
+    values: dict[str, float]
+    linear: dict[str, float]
+    offsets: dict[str, float]
+    train_rmse_mm: float
+    nfev: int
+    seconds: float
+
+
+@dataclass
+class Problem:
+    sessions: list[SessionData]
+    sigma_ref: float
+    multi_load: bool
+    candidates: list[str]
+    skipped: dict[str, str]
+    fit_grids: dict[str, tuple[Grid, np.ndarray]] = field(default_factory=dict)
+    full_grids: dict[str, tuple[Grid, np.ndarray]] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- set-up
+def stress_groups(sessions: list[SessionData]) -> list[float]:
+    """Distinct stresses, MPa (within 5 % of each other count as one load)."""
+    out: list[float] = []
+    for s in sorted(x.stress_mpa for x in sessions if x.stress_mpa is not None):
+        if not out or abs(s - out[-1]) > 0.05 * max(abs(out[-1]), 1.0):
+            out.append(s)
+    return out
+
+
+def make_problem(sessions: list[SessionData], requested: list[str] | None = None) -> Problem:
+    kinds = {s.kind for s in sessions}
+    if len(sessions) > 1 and any(s.stress_mpa is None for s in sessions):
+        missing = [s.name for s in sessions if s.stress_mpa is None]
+        raise AnalysisError(
+            f"several sessions need their loads: no load_kg for {', '.join(missing)} "
+            "(session.json, a stress_MPa column or --load-kg)"
+        )
+    names = [s.name for s in sessions]
+    if len(set(names)) != len(names):
+        for i, s in enumerate(sessions):
+            s.name = f"{i}:{s.name}"
+    loads = stress_groups(sessions)
+    multi = len(loads) >= 2
+    stresses = [s.stress_mpa or 0.0 for s in sessions]
+    sigma_ref = float(np.mean(stresses)) if stresses else 0.0
+    skipped: dict[str, str] = {}
+    total_cycles = sum(s.n_complete for s in sessions)
+    for c in CANDIDATES:
+        if c == "stress_shift" and not multi:
+            skipped[c] = "needs sessions at two loads or more"
+        elif c in ("phase_resistance", "latent_heat", "convection_nonlinear", "ambient_drift") and (
+            "current" not in kinds
+        ):
+            skipped[c] = "needs a heat balance (current-driven sessions); thermometer loops only"
+        elif c == "cycle_drift" and total_cycles < 1:
+            skipped[c] = "needs complete cycles"
+    if requested:
+        unknown = [c for c in requested if c not in CANDIDATES]
+        if unknown:
+            raise AnalysisError(
+                f"unknown candidate(s) {', '.join(unknown)}; known: {', '.join(CANDIDATES)}"
+            )
+        for c in requested:
+            if c in skipped:
+                if c == "stress_shift":
+                    raise AnalysisError(
+                        f"stress_shift asked for, but all sessions are at one load "
+                        f"({loads[0] if loads else 'unknown'} MPa): a stress question needs "
+                        "sessions at two loads or more"
+                    )
+                raise AnalysisError(f"{c} asked for, but it {skipped[c]}")
+        cands = list(requested)
+    else:
+        cands = [c for c in CANDIDATES if c not in skipped]
+    prob = Problem(list(sessions), sigma_ref, multi, cands, skipped)
+    for s in sessions:
+        stress = s.stress_mpa if s.stress_mpa is not None else sigma_ref
+        if s.kind == "current":
+            dur = float(s.t[-1] - s.t[0])
+            dt_med = float(np.median(np.diff(s.t)))
+            dt_fit = max(dt_med, FIT_DT_MIN, dur / FIT_GRID_MAX)
+            prob.fit_grids[s.name] = make_grid(s, dt_fit, stress)
+            prob.full_grids[s.name] = make_grid(s, None, stress)
+        else:
+            g = make_grid(s, None, stress)
+            prob.fit_grids[s.name] = g
+            prob.full_grids[s.name] = g
+    return prob
+
+
+def _split_mask(s: SessionData) -> np.ndarray:
+    """True on the training part: first two thirds of the complete cycles (or samples)."""
+    n = len(s.t)
+    cyc = s.cycle
+    ids = np.unique(cyc)
+    if len(ids) >= 3:
+        n_train = int(math.ceil(2.0 * len(ids) / 3.0))
+        if n_train >= len(ids):
+            n_train = len(ids) - 1
+        return cyc < ids[n_train]
+    m = np.zeros(n, dtype=bool)
+    m[: int(round(2.0 * n / 3.0))] = True
+    return m
+
+
+def make_folds(prob: Problem) -> list[Fold]:
+    sessions = prob.sessions
+    loads = stress_groups(sessions)
+
+    def group(s):
+        if s.stress_mpa is None:
+            return 0
+        return int(np.argmin([abs(s.stress_mpa - x) for x in loads]))
+
+    if len(loads) <= 1:
+        train = {s.name: _split_mask(s) for s in sessions}
+        return [Fold("time split", train, {k: ~v for k, v in train.items()})]
+    folds = []
+    for li, load in enumerate(loads):
+        train, test = {}, {}
+        for s in sessions:
+            n = len(s.t)
+            if group(s) != li:
+                train[s.name] = np.ones(n, dtype=bool)
+                test[s.name] = np.zeros(n, dtype=bool)
+            elif len(loads) == 2:
+                m = _split_mask(s)
+                train[s.name], test[s.name] = m, ~m
+            else:
+                train[s.name] = np.zeros(n, dtype=bool)
+                test[s.name] = np.ones(n, dtype=bool)
+        folds.append(Fold(f"load {load:.0f} MPa held out", train, test))
+    return folds
+
+
+# --------------------------------------------------------------------------- fitting
+def _spec(prob: Problem, model: str) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray,
+                                              np.ndarray]:  # fmt: skip
+    kinds = {s.kind for s in prob.sessions}
+    names = []
+    if "current" in kinds:
+        names += ["tau_s"]
+    names += ["h_mid", "h_w", "c_mid", "c_w"]
+    if "current" in kinds:
+        names += ["tau_heat_s", "tau_cool_s"]
+    if len(stress_groups(prob.sessions)) >= 3:
+        # loops narrow under load (paper Fig. 11); with two loads one branch of one load is
+        # held out, and narrowing and a common shift could not both be learnt: width fixed
+        names += ["shrink_k_per_mpa"]
+    table = dict(_BASE)
+    if model != "baseline":
+        ext = dict(_EXT[model])
+        if model == "cycle_drift" and sum(s.n_complete for s in prob.sessions) < 20:
+            ext.pop("cyc_nsat")
+        names += list(ext)
+        table.update(ext)
+    scale = np.array([table[n][0] for n in names])
+    lo = np.array([table[n][1] for n in names])
+    hi = np.array([table[n][2] for n in names])
+    start = np.array([table[n][3] for n in names])
+    return names, scale, lo, hi, start
+
+
+def _obs_on_grid(pos: np.ndarray, idx: np.ndarray, mask: np.ndarray, m: int):
+    """Mean observed position per grid point over the masked samples; NaN where none."""
+    cnt = np.bincount(idx[mask], minlength=m)
+    tot = np.bincount(idx[mask], weights=pos[mask], minlength=m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = tot / cnt
+    return out, cnt
+
+
+class _Objective:
+    """Training residuals of one model on one fold, linear parameters projected out."""
+
+    def __init__(self, prob: Problem, fold: Fold, names: list[str], scale: np.ndarray) -> None:
+        self.prob = prob
+        self.names = names
+        self.scale = scale
+        self.items = []
+        for s in prob.sessions:
+            mask = fold.train[s.name]
+            if not mask.any():
+                continue
+            g, idx = prob.fit_grids[s.name]
+            obs, cnt = _obs_on_grid(s.pos, idx, mask, len(g.t))
+            sel = np.flatnonzero(cnt > 0)
+            self.items.append((s, g, sel, obs[sel]))
+        self.fixed = {"sigma_ref": prob.sigma_ref}
+        self.nfev = 0
+        self.last_linear: dict[str, float] = {}
+        self.last_offsets: dict[str, float] = {}
+
+    def params(self, z: np.ndarray) -> dict[str, float]:
+        p = dict(self.fixed)
+        p.update(zip(self.names, (float(v) for v in z * self.scale), strict=True))
+        return p
+
+    def __call__(self, z: np.ndarray) -> np.ndarray:
+        self.nfev += 1
+        p = self.params(z)
+        cols, ys, sess = [], [], []
+        for k, (_s, g, sel, obs) in enumerate(self.items):
+            sim = simulate(g, p)
+            cols.append(sim.basis[sel])
+            ys.append(obs - sim.fixed[sel])
+            sess.append(np.full(len(sel), k))
+        basis = np.concatenate(cols)
+        y = np.concatenate(ys)
+        sid = np.concatenate(sess)
+        n_s = len(self.items)
+        onehot = (sid[:, None] == np.arange(n_s)[None, :]).astype(float)
+        x_mat = np.column_stack((onehot, basis))
+        coef, *_ = np.linalg.lstsq(x_mat, y, rcond=None)
+        r = y - x_mat @ coef
+        if not np.all(np.isfinite(r)):
+            return np.full_like(y, 1e3)
+        self.last_offsets = {it[0].name: float(coef[k]) for k, it in enumerate(self.items)}
+        self.last_linear = {"eps_l": float(coef[n_s]), "alpha_per_k": float(coef[n_s + 1])}
+        return r
+
+
+def _initial_temps(temp: np.ndarray, pos: np.ndarray) -> dict[str, float]:
+    """Transformation windows from position against temperature on each branch."""
+    hi, lo = np.percentile(pos, 98), np.percentile(pos, 2)
+    xi = (pos - lo) / max(hi - lo, 1e-9)
+    d = np.concatenate(([0], directions(temp)))
+    out = {}
+    for tag, sign in (("h", 1), ("c", -1)):
+        on = d == sign
+        band = {}
+        for q in (0.15, 0.5, 0.85):
+            m = on & (np.abs(xi - q) < 0.1)
+            band[q] = float(np.median(temp[m])) if m.sum() >= 2 else math.nan
+        if not all(math.isfinite(v) for v in band.values()):
+            continue
+        out[f"{tag}_mid"] = band[0.5]
+        out[f"{tag}_w"] = float(np.clip(abs(band[0.15] - band[0.85]) / 0.77, 1.0, 60.0))
+    return out
+
+
+def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray:
+    x = start.copy()
+    idx = {n: i for i, n in enumerate(names)}
+    fixed = {"sigma_ref": prob.sigma_ref}
+
+    def temps_for(tau: float):
+        ts, ps = [], []
+        for s in prob.sessions:
+            g, gidx = prob.fit_grids[s.name]
+            p = dict(fixed, tau_s=tau, h_mid=0, h_w=1, c_mid=0, c_w=1)
+            temp = simulate_temperature_only(g, p)
+            mask = fold.train[s.name]
+            ts.append(temp[gidx[mask]])
+            ps.append(s.pos[mask] - np.median(s.pos[mask]))
+        return np.concatenate(ts), np.concatenate(ps)
+
+    taus = [4.0] if "tau_s" not in idx else [1.0, 2.0, 4.0, 8.0, 16.0]
+    best = (math.inf, x)
+    obj = _Objective(prob, fold, names, scale)
+    for tau in taus:
+        temp, pos = temps_for(tau)
+        guess = _initial_temps(temp, pos)
+        xt = x.copy()
+        if "tau_s" in idx:
+            xt[idx["tau_s"]] = tau
+        for k, v in guess.items():
+            xt[idx[k]] = v
+        xt = np.clip(xt, lo, hi)
+        cost = float(np.sum(obj(xt / scale) ** 2))
+        if cost < best[0]:
+            best = (cost, xt)
+    return best[1]
+
+
+def simulate_temperature_only(g: Grid, p: dict[str, float]) -> np.ndarray:
+    from smabench.analysis.model import temperature
+
+    return temperature(g, p)
+
+
+def fit_model(
+    prob: Problem,
+    fold: Fold,
+    model: str,
+    base: FitResult | None = None,
+    max_nfev: int | None = None,
+) -> FitResult:
+    """Fit ``model`` ('baseline' or a candidate) on the fold's training part."""
+    t0 = time.perf_counter()
+    if max_nfev is None:
+        max_nfev = 60 if base is None else 25
+    names, scale, lo, hi, start = _spec(prob, model)
+    if base is None:
+        x0 = _start(prob, fold, names, scale, lo, hi, start)
+    else:
+        x0 = start.copy()
+        for i, n in enumerate(names):
+            if n in base.values:
+                x0[i] = base.values[n]
+    x0 = np.clip(x0, lo, hi)
+    obj = _Objective(prob, fold, names, scale)
+    starts = [x0]
+    second = {"stress_shift": ("ss_k_per_mpa", 0.0), "convection_nonlinear": ("conv_k", 0.015)}
+    if model in second:  # a second start: the baseline compensates strong effects elsewhere
+        pname, v = second[model]
+        xs = x0.copy()
+        xs[names.index(pname)] = v
+        starts.append(xs)
+
+    def run(xs):
+        return least_squares(
+            obj, xs / scale, bounds=(lo / scale, hi / scale), diff_step=1e-4,
+            max_nfev=max_nfev, x_scale=1.0, method="trf", ftol=1e-7, xtol=1e-7,
+        )  # fmt: skip
+
+    best = None
+    for xs in starts:
+        res = run(xs)
+        if best is None or res.cost < best.cost:
+            best = res
+    if base is not None and 2.0 * best.cost > len(best.fun) * base.train_rmse_mm**2 * 1.0001:
+        # worse than the baseline it contains: restart from the baseline (extension off)
+        xs = x0.copy()
+        for i, n in enumerate(names):
+            if n not in base.values:
+                xs[i] = 0.0 if lo[i] <= 0.0 <= hi[i] else lo[i]
+        res = run(xs)
+        if res.cost < best.cost:
+            best = res
+    res = best
+    r = obj(res.x)  # sets last_linear / offsets at the optimum
+    n, k = len(r), len(names)
+    se = _standard_errors(res.jac, r, n, k) * scale
+    x = res.x * scale
+    return FitResult(
+        model=model, names=names, x=x, se=se, values=obj.params(res.x), linear=obj.last_linear,
+        offsets=obj.last_offsets, train_rmse_mm=float(np.sqrt(np.mean(r**2))),
+        nfev=obj.nfev, seconds=time.perf_counter() - t0,
+    )  # fmt: skip
+
+
+def _standard_errors(jac: np.ndarray, r: np.ndarray, n: int, k: int) -> np.ndarray:
+    """Parameter standard errors from J'J, inflated for autocorrelated residuals (n_eff)."""
+    if n <= k:
+        return np.full(k, math.nan)
+    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 and np.std(r) > 0 else 0.0
+    rho = min(max(rho, 0.0), 0.9)  # capped: a smooth misfit would leave no degrees of freedom
+    n_eff = max(n * (1.0 - rho) / (1.0 + rho), k + 1.0)
+    s2 = float(np.sum(r**2)) / max(n_eff - k, 1.0)
+    try:
+        cov = np.linalg.pinv(jac.T @ jac) * s2 * n / n_eff
+    except np.linalg.LinAlgError:
+        return np.full(k, math.nan)
+    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+
+
+# --------------------------------------------------------------------------- prediction
+@dataclass
+class Prediction:
+    position_mm: np.ndarray  # at the original samples
+    temp_c: np.ndarray
+    xi: np.ndarray
+
+
+def predict(prob: Problem, fit: FitResult, s: SessionData, train_mask: np.ndarray) -> Prediction:
+    """Simulate a whole session from its input with the fitted parameters (full grid)."""
+    g, idx = prob.full_grids[s.name]
+    sim = simulate(g, fit.values)
+    lin = fit.linear
+    pos = sim.fixed + lin["eps_l"] * sim.basis[:, 0] + lin["alpha_per_k"] * sim.basis[:, 1]
+    pos_s = pos[idx]
+    if s.name in fit.offsets:
+        off = fit.offsets[s.name]
+    else:  # no training data from this session: zero the sensor on its first samples
+        n0 = max(5, len(s.t) // 50)
+        off = float(np.mean(s.pos[:n0] - pos_s[:n0]))
+    return Prediction(pos_s + off, sim.temp[idx], sim.xi[idx])
+
+
+# --------------------------------------------------------------------------- verdict
+def held_out_units(prob: Problem, folds: list[Fold], min_units: int = 8):
+    """(session, fold index, sample indices) per held-out unit: cycles, split into blocks
+    when there are fewer than ``min_units`` of them."""
+    units = []
+    for fi, fold in enumerate(folds):
+        for s in prob.sessions:
+            m = fold.test[s.name]
+            if not m.any():
+                continue
+            for c in np.unique(s.cycle[m]):
+                ii = np.flatnonzero(m & (s.cycle == c))
+                if len(ii) >= 4:
+                    units.append((s.name, fi, ii))
+    if len(units) < min_units and units:
+        per = int(math.ceil(min_units / len(units)))
+        per = max(per, 2)
+        units = [
+            (name, fi, blk)
+            for name, fi, ii in units
+            for blk in np.array_split(ii, per)
+            if len(blk) >= 2
+        ]
+    return units
+
+
+def wilcoxon_greater(a: np.ndarray, b: np.ndarray) -> float:
+    """One-sided p that a > b (paired), Wilcoxon signed-rank; 1.0 when undefined."""
+    d = np.asarray(a) - np.asarray(b)
+    if len(d) < 2 or np.all(d == 0):
+        return 1.0
+    try:
+        return float(wilcoxon(a, b, alternative="greater").pvalue)
+    except ValueError:
+        return 1.0
+
+
+def verdict(
+    base_units: np.ndarray,
+    cand_units: dict[str, np.ndarray],
+    base_rmse: float,
+    cand_rmse: dict[str, float],
+    noise_mm: float,
+    stroke_mm: float,
+) -> dict:
+    """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs."""
+    rows = {}
+    for c, u in cand_units.items():
+        gain = 1.0 - cand_rmse[c] / base_rmse if base_rmse > 0 else 0.0
+        p = wilcoxon_greater(base_units, u)
+        rows[c] = {"gain": gain, "p_value": p, "significant": bool(p < ALPHA and gain >= MIN_GAIN)}
+    order = sorted(rows, key=lambda c: -rows[c]["gain"])
+    floor = max(FLOOR_NOISE * noise_mm, FLOOR_STROKE * stroke_mm)
+    structured = bool(base_rmse > floor)
+    sig = [c for c in order if rows[c]["significant"]]
+    runner = None
+    reason = ""
+    if not sig:
+        cause = "unexplained" if structured else "none"
+        runner = order[0] if order else None
+        reason = (
+            f"no extension cuts the held-out error significantly (α = {ALPHA}, gain ≥ "
+            f"{MIN_GAIN:.0%}); baseline held-out RMSE {base_rmse:.4g} mm vs floor {floor:.4g} mm"
+        )
+    else:
+        best = sig[0]
+        runner = next((c for c in order if c != best), None)
+        cause = best
+        reason = f"{best}: gain {rows[best]['gain']:.1%}, p = {rows[best]['p_value']:.2g}"
+        if runner is not None and rows[runner]["gain"] > 0:
+            ratio = rows[runner]["gain"] / rows[best]["gain"]
+            p_sep = wilcoxon_greater(cand_units[runner], cand_units[best])
+            rows[best]["p_vs_runner_up"] = p_sep
+            if ratio >= SEPARATION and p_sep >= ALPHA:
+                cause = "unexplained"
+                reason = (
+                    f"{best} (gain {rows[best]['gain']:.1%}) and {runner} "
+                    f"(gain {rows[runner]['gain']:.1%}) cannot be told apart (p = {p_sep:.2g})"
+                )
+    return {
+        "cause": cause,
+        "runner_up": runner,
+        "leader": order[0] if order else None,
+        "reason": reason,
+        "structured": structured,
+        "floor_mm": floor,
+        "rows": rows,
+    }
+
+
+# --------------------------------------------------------------------------- driver
+@dataclass
+class Analysis:
+    prob: Problem
+    folds: list[Fold]
+    fits: dict[str, list[FitResult]]  # model → one per fold
+    preds: dict[str, dict[str, Prediction]]  # model → session → prediction (held-out fold)
+    heldout: dict[str, np.ndarray]  # session → bool mask (held out in some fold)
+    units: list
+    unit_rmse: dict[str, np.ndarray]
+    rmse: dict[str, float]
+    result: dict
+    timing: dict[str, float]
+
+
+def _rmse(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x)))) if len(x) else math.nan
+
+
+def _pool(workers: int | None, n_tasks: int):
+    """A process pool for the candidate fits (None: fit in this process)."""
+    if workers is None:
+        workers = min(os.cpu_count() or 1, 4)
+    if workers <= 1 or n_tasks <= 1:
+        return None
+    try:
+        ctx = multiprocessing.get_context("fork")
+    except ValueError:
+        return None
+    return ProcessPoolExecutor(max_workers=min(workers, n_tasks), mp_context=ctx)
+
+
+def analyse(
+    sessions: list[SessionData],
+    candidates: list[str] | None = None,
+    progress=None,
+    workers: int | None = None,
+):
+    """Run the whole protocol; returns an :class:`Analysis`. ``workers``: processes for the
+    candidate fits (default: the CPU count, at most 4; 1 = no pool)."""
+    t_start = time.perf_counter()
+    say = progress or (lambda msg: None)
+    prob = make_problem(sessions, candidates)
+    folds = make_folds(prob)
+    models = ["baseline"] + prob.candidates
+    fits: dict[str, list[FitResult]] = {m: [] for m in models}
+    timing: dict[str, float] = {}
+    order = sorted(prob.candidates, key=lambda c: c not in COUPLED)  # slow ones first
+    pool = _pool(workers, len(order))
+    try:
+        for fold in folds:
+            base = fit_model(prob, fold, "baseline")
+            fits["baseline"].append(base)
+            timing["baseline"] = timing.get("baseline", 0.0) + base.seconds
+            say(f"[{fold.name}] baseline: train rmse {base.train_rmse_mm:.4g} mm "
+                f"({base.nfev} evaluations, {base.seconds:.1f} s)")  # fmt: skip
+            if pool is None:
+                done = {c: fit_model(prob, fold, c, base) for c in order}
+            else:
+                futs = {c: pool.submit(fit_model, prob, fold, c, base) for c in order}
+                done = {c: f.result() for c, f in futs.items()}
+            for c in prob.candidates:
+                f = done[c]
+                fits[c].append(f)
+                timing[c] = timing.get(c, 0.0) + f.seconds
+                say(f"[{fold.name}] {c}: train rmse {f.train_rmse_mm:.4g} mm "
+                    f"({f.nfev} evaluations, {f.seconds:.1f} s)")  # fmt: skip
+    finally:
+        if pool is not None:
+            pool.shutdown()
+    # held-out predictions: each session from the fold that holds it out
+    heldout = {s.name: np.zeros(len(s.t), dtype=bool) for s in prob.sessions}
+    preds: dict[str, dict[str, Prediction]] = {m: {} for m in models}
+    for s in prob.sessions:
+        for fi, fold in enumerate(folds):
+            m = fold.test[s.name]
+            if not m.any():
+                continue
+            for model in models:
+                pr = predict(prob, fits[model][fi], s, fold.train[s.name])
+                old = preds[model].get(s.name)
+                if old is None:
+                    preds[model][s.name] = Prediction(
+                        np.where(m, pr.position_mm, np.nan), pr.temp_c, pr.xi
+                    )
+                else:
+                    old.position_mm[m] = pr.position_mm[m]
+            heldout[s.name] |= m
+    # in-sample (training) predictions where a session is never held out: fold 0's fit
+    for s in prob.sessions:
+        for model in models:
+            if s.name not in preds[model]:
+                pr = predict(prob, fits[model][0], s, folds[0].train[s.name])
+                preds[model][s.name] = pr
+            else:
+                pm = preds[model][s.name].position_mm
+                nan = ~np.isfinite(pm)
+                if nan.any():
+                    fi = next(
+                        i for i, f in enumerate(folds) if f.train[s.name].any()
+                    ) if any(f.train[s.name].any() for f in folds) else 0
+                    pm[nan] = predict(prob, fits[model][fi], s, folds[fi].train[s.name]
+                                      ).position_mm[nan]  # fmt: skip
+    units = held_out_units(prob, folds)
+    by_name = {s.name: s for s in prob.sessions}
+    unit_rmse = {}
+    rmse = {}
+    for model in models:
+        u = []
+        allres = []
+        for name, _fi, ii in units:
+            r = preds[model][name].position_mm[ii] - by_name[name].pos[ii]
+            u.append(_rmse(r))
+            allres.append(r)
+        unit_rmse[model] = np.array(u)
+        rmse[model] = _rmse(np.concatenate(allres)) if allres else math.nan
+    noise = float(np.median([s.noise_mm() for s in prob.sessions]))
+    stroke = float(np.median([np.percentile(s.pos, 98) - np.percentile(s.pos, 2)
+                              for s in prob.sessions]))  # fmt: skip
+    v = verdict(
+        unit_rmse["baseline"], {c: unit_rmse[c] for c in prob.candidates}, rmse["baseline"],
+        {c: rmse[c] for c in prob.candidates}, noise, stroke,
+    )  # fmt: skip
+    v["noise_mm"] = noise
+    v["stroke_mm"] = stroke
+    timing["total"] = time.perf_counter() - t_start
+    return Analysis(prob, folds, fits, preds, heldout, units, unit_rmse, rmse, v, timing)
+
+
+# --------------------------------------------------------------------------- parameters
+def physical_parameters(an: Analysis, model: str) -> dict[str, dict]:
+    """Fitted parameters of ``model`` in physical units: value, standard uncertainty, unit.
+
+    Over several folds: the mean, and an uncertainty combining the fits' own standard errors
+    with the spread between folds."""
+    fits = an.fits[model]
+    out: dict[str, dict] = {}
+
+    def combine(vals, ses):
+        vals, ses = np.asarray(vals, float), np.asarray(ses, float)
+        mean = float(np.mean(vals))
+        spread = float(np.std(vals, ddof=1)) if len(vals) > 1 else 0.0
+        u = float(np.sqrt(np.nanmean(ses**2) + spread**2))
+        return mean, u, vals.tolist()
+
+    for i, n in enumerate(fits[0].names):
+        v, u, per = combine([f.x[i] for f in fits], [f.se[i] for f in fits])
+        out[n] = {"value": v, "uncertainty": u, "unit": _UNITS.get(n, ""), "per_fold": per}
+    for n in ("eps_l", "alpha_per_k"):
+        vals = [f.linear.get(n, math.nan) for f in fits]
+        out[n] = {"value": float(np.mean(vals)), "uncertainty": float(np.std(vals)) if
+                  len(vals) > 1 else math.nan, "unit": _UNITS[n], "per_fold": vals}  # fmt: skip
+    # derived: the candidate's parameter in the units of the effect
+    sess = an.prob.sessions
+    if model == "stress_shift":
+        s, u = out["ss_k_per_mpa"]["value"], out["ss_k_per_mpa"]["uncertainty"]
+        slope = 1.0 / s if s > 0 else math.inf
+        out["stress_rate_mpa_per_k"] = {
+            "value": slope, "uncertainty": u / s**2 if s > 0 else math.inf, "unit": "MPa/K",
+            "per_fold": [1.0 / v if v > 0 else math.inf for v in out["ss_k_per_mpa"]["per_fold"]],
+        }  # fmt: skip
+    elif model == "phase_resistance":
+        cur = [s for s in sess if s.kind == "current"]
+        rho = float(np.mean([s.resistance_ohm()[0] * s.area_m2 / (s.length_mm * 1e-3)
+                             for s in cur]))  # fmt: skip
+        b, u = out["beta"]["value"], out["beta"]["uncertainty"]
+        out["resistivity_difference_uohm_cm"] = {
+            "value": b * rho * 1e8, "uncertainty": u * rho * 1e8, "unit": "µΩ·cm",
+            "note": "austenite minus martensite, from R = R_mean·(1 + β(0.5 - ξ))",
+        }
+    elif model == "latent_heat":
+        v, u = out["lat_k"]["value"], out["lat_k"]["uncertainty"]
+        out["latent_heat_j_kg"] = {
+            "value": v * CP_J_KGK, "uncertainty": u * CP_J_KGK, "unit": "J/kg",
+            "note": f"λ·cp with cp = {CP_J_KGK:g} J/(kg·K)",
+        }
+    elif model == "sensor_lag" and any(s.row_time for s in sess):
+        out["lag_s"]["unit"] = "samples (no t_s column)"
+    return out
+
+
+_UNITS = {
+    "tau_s": "s",
+    "h_mid": "°C",
+    "h_w": "K",
+    "c_mid": "°C",
+    "c_w": "K",
+    "tau_heat_s": "s",
+    "tau_cool_s": "s",
+    "shrink_k_per_mpa": "K/MPa",
+    "beta": "1 (ΔR/R_mean)",
+    "lat_k": "K per unit ξ",
+    "ss_k_per_mpa": "K/MPa",
+    "conv_k": "1/K",
+    "lag_s": "s",
+    "drift_k_h": "K/h",
+    "cyc_rate": "strain/cycle",
+    "cyc_nsat": "cycles",
+    "eps_l": "strain",
+    "alpha_per_k": "1/K",
+}
+
+EFFECT_PARAMETER = {
+    "phase_resistance": "resistivity_difference_uohm_cm",
+    "latent_heat": "latent_heat_j_kg",
+    "stress_shift": "stress_rate_mpa_per_k",
+    "convection_nonlinear": "conv_k",
+    "sensor_lag": "lag_s",
+    "ambient_drift": "drift_k_h",
+    "cycle_drift": "cyc_rate",
+}
+"""Candidate → its headline parameter in :func:`physical_parameters`."""
+
+__all__ = [
+    "COUPLED",
+    "Analysis",
+    "analyse",
+    "physical_parameters",
+    "Temps",
+]

@@ -1,0 +1,278 @@
+"""Sessions → analysis inputs: validation, metadata, cycles, uniform grids."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from smabench.analysis.model import (
+    CP_J_KGK,
+    G_M_S2,
+    RESISTIVITY_MEAN_OHM_M,
+    RHO_KG_M3,
+    Grid,
+)
+
+DEFAULT_LENGTH_MM = 55.0
+DEFAULT_DIAMETER_MM = 0.38
+DEFAULT_AMBIENT_C = 22.0
+
+
+class AnalysisError(ValueError):
+    """Input the analysis cannot use (the user's fault): one clear line."""
+
+
+@dataclass
+class SessionData:
+    """One session's samples (original times) plus what the analysis derives from them."""
+
+    name: str
+    path: str
+    kind: str  # "current" or "thermo"
+    t: np.ndarray
+    pos: np.ndarray
+    current: np.ndarray | None
+    voltage: np.ndarray | None
+    ambient: np.ndarray | None
+    temp: np.ndarray | None
+    cycle: np.ndarray  # int cycle index per sample
+    n_complete: int
+    load_kg: float | None
+    stress_mpa: float | None
+    length_mm: float
+    diameter_mm: float
+    row_time: bool  # t is the row index (no t_s column)
+    notes: list[str]
+
+    @property
+    def area_m2(self) -> float:
+        return math.pi * (self.diameter_mm * 0.5e-3) ** 2
+
+    @property
+    def heat_capacity_j_k(self) -> float:
+        return RHO_KG_M3 * CP_J_KGK * self.area_m2 * self.length_mm * 1e-3
+
+    def resistance_ohm(self) -> tuple[float, str]:
+        """Mean wire resistance, Ω: median V/I when the voltage is recorded, else nominal."""
+        if self.voltage is not None and self.current is not None:
+            i = self.current
+            ok = np.isfinite(self.voltage) & (i > 0.2 * np.nanmax(i)) & (i > 0.02)
+            if ok.sum() >= 10:
+                return float(np.median(self.voltage[ok] / i[ok])), "median V/I"
+        r = RESISTIVITY_MEAN_OHM_M * self.length_mm * 1e-3 / self.area_m2
+        return r, "nominal 90 µΩ·cm"
+
+    def noise_mm(self) -> float:
+        """Sensor noise std from the sample-to-sample differences (robust)."""
+        d = np.diff(self.pos)
+        if len(d) < 3:
+            return 0.0
+        return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+
+
+def _finite_column(data: dict, name: str, path: str) -> np.ndarray:
+    col = np.asarray(data[name], dtype=float)
+    bad = ~np.isfinite(col)
+    if bad.any():
+        rows = np.flatnonzero(bad)
+        raise AnalysisError(
+            f"{path}: column {name} has {bad.sum()} empty/NaN value(s) (first at data row "
+            f"{rows[0] + 1}); the analysis needs it complete"
+        )
+    return col
+
+
+def _optional(data: dict, name: str) -> np.ndarray | None:
+    col = data.get(name)
+    if col is None:
+        return None
+    col = np.asarray(col, dtype=float)
+    return col if np.isfinite(col).any() else None
+
+
+def _cycles_from_current(current: np.ndarray) -> tuple[np.ndarray, int]:
+    """Cycle index from heating pulses (rising edges); complete = a pulse that ended."""
+    on = current > 0.05 * max(float(np.max(current)), 1e-9)
+    rise = np.flatnonzero(on[1:] & ~on[:-1]) + 1
+    if on[0]:
+        rise = np.concatenate(([0], rise))
+    fall = np.flatnonzero(~on[1:] & on[:-1]) + 1
+    cycle = np.zeros(len(current), dtype=int)
+    if len(rise):
+        cycle = np.maximum(np.searchsorted(rise, np.arange(len(current)), side="right") - 1, 0)
+    complete = sum(1 for r in rise.tolist() if np.any((fall > r) & (fall < len(current) - 2)))
+    return cycle, complete
+
+
+def _cycles_from_temperature(temp: np.ndarray) -> tuple[np.ndarray, int]:
+    """Cycle boundaries at temperature minima (hysteresis on the extrema).
+
+    A complete cycle goes min → max → min."""
+    span = float(np.ptp(temp))
+    if span <= 0:
+        return np.zeros(len(temp), dtype=int), 0
+    h = 0.3 * span
+    # zig-zag extrema with threshold h
+    ext = [(0, "min" if temp[1:].mean() >= temp[0] else "max")] if len(temp) > 1 else []
+    lo_i = hi_i = 0
+    state = ext[0][1] if ext else "min"
+    for k in range(1, len(temp)):
+        v = temp[k]
+        if state == "min":  # looking for a max after a min
+            if v > temp[hi_i]:
+                hi_i = k
+            if v < temp[lo_i] and hi_i < lo_i:
+                lo_i = k
+            if temp[hi_i] - v > h and hi_i > lo_i:
+                ext.append((hi_i, "max"))
+                state, lo_i = "max", k
+        else:
+            if v < temp[lo_i]:
+                lo_i = k
+            if v - temp[lo_i] > h and lo_i > hi_i:
+                ext.append((lo_i, "min"))
+                state, hi_i = "min", k
+    mins = [i for i, kind in ext if kind == "min"]
+    maxs = [i for i, kind in ext if kind == "max"]
+    # the end of the record counts as a minimum when it came back down by h
+    last_max = maxs[-1] if maxs else None
+    if last_max is not None and temp[last_max] - temp[-1] > h:
+        mins.append(len(temp) - 1)
+    complete = sum(1 for m in maxs if any(a < m for a in mins) and any(b > m for b in mins))
+    starts = sorted(i for i in mins if i < len(temp) - 1)
+    cycle = np.zeros(len(temp), dtype=int)
+    if starts:
+        cycle = np.maximum(np.searchsorted(starts, np.arange(len(temp)), side="right") - 1, 0)
+    return cycle, complete
+
+
+def prepare_session(
+    session,
+    load_kg: float | None = None,
+    length_mm: float | None = None,
+    diameter_mm: float | None = None,
+) -> SessionData:
+    """Validate a loaded :class:`smabench.sessions.Session` and extract the analysis inputs.
+
+    Flags (``load_kg``, ``length_mm``, ``diameter_mm``) override ``session.json``.
+    """
+    path = str(session.path)
+    data = session.data
+    meta = session.meta or {}
+    notes: list[str] = []
+    if "position_mm" not in data:
+        raise AnalysisError(f"{path}: no position_mm column")
+    has_current = "current_A" in data and _optional(data, "current_A") is not None
+    has_temp = "temperature_C" in data and _optional(data, "temperature_C") is not None
+    if has_current and "t_s" in data and not meta.get("t_s_is_row_index"):
+        kind = "current"
+    elif has_temp:
+        kind = "thermo"
+    else:
+        raise AnalysisError(
+            f"{path}: needs t_s, current_A and position_mm (current-driven) or temperature_C and "
+            f"position_mm (thermometer loop); columns: {', '.join(session.columns)}"
+        )
+    n = len(data["position_mm"])
+    if n < 20:
+        raise AnalysisError(f"{path}: only {n} samples; the analysis needs at least 20")
+    pos = _finite_column(data, "position_mm", path)
+    t = _finite_column(data, "t_s", path)
+    row_time = bool(meta.get("t_s_is_row_index"))
+    if np.any(np.diff(t) <= 0):
+        k = int(np.flatnonzero(np.diff(t) <= 0)[0])
+        raise AnalysisError(f"{path}: t_s does not increase at data row {k + 2}")
+    wire = meta.get("wire") or {}
+    length = length_mm or wire.get("length_mm")
+    diameter = diameter_mm or wire.get("diameter_mm")
+    if length is None:
+        length = DEFAULT_LENGTH_MM
+        notes.append(f"wire length not given: {DEFAULT_LENGTH_MM} mm assumed (--wire-length-mm)")
+    if diameter is None:
+        diameter = DEFAULT_DIAMETER_MM
+        notes.append(
+            f"wire diameter not given: {DEFAULT_DIAMETER_MM} mm assumed (--wire-diameter-mm)"
+        )
+    length, diameter = float(length), float(diameter)
+    if not (0 < length < 1e5 and 0 < diameter < 10):
+        raise AnalysisError(f"{path}: implausible wire length {length} mm / diameter {diameter} mm")
+    load = load_kg if load_kg is not None else meta.get("load_kg")
+    load = None if load is None else float(load)
+    area = math.pi * (diameter * 0.5e-3) ** 2
+    stress = None
+    current = voltage = ambient = temp = None
+    if kind == "current":
+        current = _finite_column(data, "current_A", path)
+        voltage = _optional(data, "voltage_V")
+        ambient = _optional(data, "ambient_C")
+        if ambient is not None and not np.isfinite(ambient).all():
+            ok = np.isfinite(ambient)
+            ambient = np.interp(np.arange(n), np.flatnonzero(ok), ambient[ok])
+        if load is not None:
+            stress = load * G_M_S2 / area * 1e-6
+        cyc = _optional(data, "cycle")
+        cycle, complete = _cycles_from_current(current)
+        if cyc is not None and np.isfinite(cyc).all() and np.all(np.diff(cyc) >= 0):
+            cycle = (cyc - cyc[0]).astype(int)
+        if complete == 0:
+            raise AnalysisError(
+                f"{path}: no complete cycle (a heating pulse followed by cooling with the "
+                "current off); nothing to analyse"
+            )
+    else:
+        temp = _finite_column(data, "temperature_C", path)
+        if "stress_MPa" in data and _optional(data, "stress_MPa") is not None:
+            stress = float(np.nanmean(data["stress_MPa"]))
+            if load_kg is not None:
+                stress = load_kg * G_M_S2 / area * 1e-6
+        elif load is not None:
+            stress = load * G_M_S2 / area * 1e-6
+        cycle, complete = _cycles_from_temperature(temp)
+        if complete == 0:
+            raise AnalysisError(
+                f"{path}: no complete cycle (the temperature never rises and falls back by 30 % "
+                "of its range); nothing to analyse"
+            )
+    if load is None and stress is not None:
+        load = stress * 1e6 * area / G_M_S2
+    if np.ptp(pos) <= 0:
+        raise AnalysisError(f"{path}: position_mm never changes")
+    name = Path(path).name or path
+    return SessionData(
+        name=name, path=path, kind=kind, t=t, pos=pos, current=current, voltage=voltage,
+        ambient=ambient, temp=temp, cycle=cycle, n_complete=complete, load_kg=load,
+        stress_mpa=stress, length_mm=length, diameter_mm=diameter, row_time=row_time, notes=notes,
+    )  # fmt: skip
+
+
+def make_grid(s: SessionData, dt: float | None, stress_mpa: float) -> tuple[Grid, np.ndarray]:
+    """The session on a uniform grid of step ``dt`` (None: median sample step); returns the
+    grid and the grid index of every original sample (thermometer loops: the samples)."""
+    r_ohm, _ = s.resistance_ohm() if s.kind == "current" else (1.0, "")
+    if s.kind == "thermo":
+        dts = float(np.median(np.diff(s.t)))
+        g = Grid(
+            s.name, "thermo", s.t, dts, None, None, s.temp, stress_mpa, s.length_mm,
+            s.heat_capacity_j_k, r_ohm,
+        )  # fmt: skip
+        return g, np.arange(len(s.t))
+    if dt is None:
+        dt = float(np.median(np.diff(s.t)))
+    t0, t1 = float(s.t[0]), float(s.t[-1])
+    m = int(math.floor((t1 - t0) / dt)) + 1
+    tg = t0 + dt * np.arange(m)
+    # energy of the zero-order-held I²: cumulative integral is piecewise linear → exact interp
+    cum = np.concatenate(([0.0], np.cumsum(s.current[:-1] ** 2 * np.diff(s.t))))
+    e = np.interp(tg, s.t, cum)
+    i2 = np.diff(e) / dt
+    amb_src = s.ambient if s.ambient is not None else np.full(len(s.t), DEFAULT_AMBIENT_C)
+    amb = np.interp(tg, s.t, amb_src)
+    g = Grid(
+        s.name, "current", tg, dt, i2, amb, None, stress_mpa, s.length_mm,
+        s.heat_capacity_j_k, r_ohm,
+    )  # fmt: skip
+    idx = np.clip(np.rint((s.t - t0) / dt).astype(int), 0, m - 1)
+    return g, idx

@@ -187,7 +187,11 @@ def temperature(g: Grid, p: dict[str, float]) -> np.ndarray:
 
 
 def _temperature_coupled(g: Grid, p: dict[str, float], amb: np.ndarray, k_a2: float):
-    """Sequential heat balance with ξ- or T-dependent terms (plain floats)."""
+    """Sequential heat balance with ξ- or T-dependent terms (plain floats).
+
+    The same discrete equations as the plant's ``Plant.step``; per step only what changes is
+    computed: the reference of the scaled branch at each reversal, the cosine inside the
+    transformation band only, the exponential only when convection makes it T-dependent."""
     tt = Temps(p, g.stress_mpa)
     as_c, af_c, mf_c, ms_c = tt.as_c, tt.af_c, tt.mf_c, tt.ms_c
     wh = max(af_c - as_c, 1e-6)
@@ -200,40 +204,66 @@ def _temperature_coupled(g: Grid, p: dict[str, float], amb: np.ndarray, k_a2: fl
     tau_h = p.get("tau_heat_s", 0.0)
     bh = math.exp(-g.dt / tau_h) if tau_h > 1e-6 else 0.0
     rate = g.dt / p["tau_s"]
+    a_const = math.exp(-rate)
     cos, pi, exp = math.cos, math.pi, math.exp
-    i2 = g.i2.tolist()
+    ph, pc = pi / wh, pi / wc
+    heat_in = (k_a2 * g.i2).tolist()
     ambl = amb.tolist()
     n = len(g.t)
     out = [0.0] * n
     temp = ambl[0]
     out[0] = temp
     xi = xi_eq = xi_r = 1.0
-    t_r = temp
+    ref = 1.0
     direction = 0
+    eps = _EPS_T
     for k in range(n - 1):
         ta = ambl[k]
-        gf = 1.0 + conv * (temp - ta) if conv else 1.0
-        if gf < 0.05:
-            gf = 0.05
-        t_inf = ta + k_a2 * i2[k] * (1.0 + beta * (0.5 - xi)) / gf
-        new = t_inf + (temp - t_inf) * exp(-rate * gf)
+        q = heat_in[k]
+        if beta:
+            q *= 1.0 + beta * (0.5 - xi)
+        if conv:
+            gf = 1.0 + conv * (temp - ta)
+            if gf < 0.05:
+                gf = 0.05
+            t_inf = ta + q / gf
+            new = t_inf + (temp - t_inf) * exp(-rate * gf)
+        else:
+            t_inf = ta + q
+            new = t_inf + (temp - t_inf) * a_const
         d = new - temp
-        dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
+        dn = 1 if d > eps else (-1 if d < -eps else direction)
         if dn != direction:
-            t_r, xi_r, direction = temp, xi_eq, dn
+            xi_r, direction = xi_eq, dn
+            if dn > 0:  # ξ_h at the reversal
+                x = (temp - as_c) / wh
+                ref = 1.0 if x <= 0.0 else (0.0 if x >= 1.0 else 0.5 * (1.0 + cos(pi * x)))
+                ref = xi_r / max(ref, 1e-12)
+            else:  # 1 - ξ_c at the reversal
+                x = (temp - mf_c) / wc
+                ref = 0.0 if x <= 0.0 else (1.0 if x >= 1.0 else 0.5 * (1.0 - cos(pi * x)))
+                ref = (1.0 - xi_r) / max(ref, 1e-12)
         if dn > 0:
-            x = min(max((new - as_c) / wh, 0.0), 1.0)
-            gt = 0.5 * (1.0 + cos(pi * x))
-            x = min(max((t_r - as_c) / wh, 0.0), 1.0)
-            gr = max(0.5 * (1.0 + cos(pi * x)), 1e-12)
-            xi_eq = min(max(xi_r * gt / gr, 0.0), xi_r)
+            if new <= as_c:
+                gt = 1.0
+            elif new >= af_c:
+                gt = 0.0
+            else:
+                gt = 0.5 * (1.0 + cos(ph * (new - as_c)))
+            xi_eq = ref * gt
+            if xi_eq > xi_r:
+                xi_eq = xi_r
             xi_new = bh * xi + (1.0 - bh) * xi_eq
         elif dn < 0:
-            x = min(max((new - mf_c) / wc, 0.0), 1.0)
-            gt = 0.5 * (1.0 + cos(pi * x))
-            x = min(max((t_r - mf_c) / wc, 0.0), 1.0)
-            gr = max(1.0 - 0.5 * (1.0 + cos(pi * x)), 1e-12)
-            xi_eq = min(max(1.0 - (1.0 - xi_r) * (1.0 - gt) / gr, xi_r), 1.0)
+            if new <= mf_c:
+                gt = 0.0
+            elif new >= ms_c:
+                gt = 1.0
+            else:
+                gt = 0.5 * (1.0 - cos(pc * (new - mf_c)))  # 1 - ξ_c
+            xi_eq = 1.0 - ref * gt
+            if xi_eq < xi_r:
+                xi_eq = xi_r
             xi_new = bc * xi + (1.0 - bc) * xi_eq
         else:
             xi_new = xi

@@ -441,10 +441,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-n", type=_positive(int), default=500, help="requests per figure (500)")
     b.add_argument("--telemetry-s", type=_positive(), default=5.0, help="telemetry count, s")
     b.set_defaults(func=cmd_bench_link)
+    from smabench.analysis.bench import add_bench_analyze
     from smabench.bench.control_bench import add_bench_control
     from smabench.gui.bench_gui import add_bench_gui
 
     add_bench_control(bsub)
+    add_bench_analyze(bsub)
 
     add_bench_gui(bsub, _positive())
     return p

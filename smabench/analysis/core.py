@@ -2,20 +2,23 @@
 
 Protocol (see ``docs/analysis-flexinol.md`` for a worked example):
 
-1. Folds. One load: the first two thirds of every session's complete cycles train, the rest is
-   held out (a single-cycle session splits at two thirds of its samples). Two loads: leave one
-   load out — one fold per load holds out that load's last third and trains on everything else
-   (the other load, and the first two thirds of this one: with two loads alone a stress slope
-   could not be fitted otherwise). Three loads or more: leave one load out entirely (the held-out
-   sessions only get their sensor zero from their first samples).
+1. Folds: blocked cross-validation. Every session's cycles form three contiguous blocks (a
+   session with fewer cycles: thirds of its samples). One load: three folds, each holds one
+   block out and trains on the other two. Two loads: six folds, one per load and block (the
+   other load always trains: with two loads alone a stress slope could not be fitted
+   otherwise). Three loads or more: leave one load out entirely (the held-out sessions only get
+   their sensor zero from their first samples). Every cycle is held out once.
 2. Every model (the baseline and each candidate extension) is fitted by ``least_squares`` on the
    training part and then simulated from the input alone (current, or measured temperature) over
-   the whole session; the held-out error is taken on the held-out samples.
-3. Verdict: per held-out unit (a cycle, or a block of one when there are few) the RMSE of the
-   baseline and of each extension; a one-sided Wilcoxon signed-rank test across the units and a
-   minimum gain decide whether an extension removes structure. ``none`` when none does and the
-   baseline is within its noise/accuracy floor, ``unexplained`` when structure remains that no
-   candidate removes, or when the best two candidates cannot be told apart.
+   the whole session; the held-out error is taken on the held-out samples. Candidates start from
+   the baseline's fit and, for the coupled ones, also from fresh starts found from the data.
+   Parameter uncertainties are cluster-robust (the training cycles are the clusters).
+3. Verdict: per held-out unit (the heating and the cooling branch of every held-out cycle, split
+   into blocks when there are fewer than 16) the RMSE of the baseline and of each extension; a
+   one-sided paired test across the units (Wilcoxon signed-rank and a log-ratio t-test,
+   Bonferroni) and a minimum gain decide whether an extension removes structure. ``none`` when
+   none does and the baseline is within its noise/accuracy floor, ``unexplained`` when structure
+   remains that no candidate removes, or when the best two candidates cannot be told apart.
 """
 
 from __future__ import annotations
@@ -31,12 +34,14 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.stats import ttest_1samp, wilcoxon
+from threadpoolctl import threadpool_limits
 
 from smabench.analysis.data import AnalysisError, SessionData, make_grid
 from smabench.analysis.model import (
     CANDIDATES,
     COUPLED,
     CP_J_KGK,
+    LINEAR,
     Grid,
     Temps,
     directions,
@@ -56,6 +61,8 @@ FLOOR_NOISE = 3.0
 FLOOR_STROKE = 0.005
 """The baseline leaves structure when its held-out RMSE exceeds both FLOOR_NOISE × the sensor
 noise and FLOOR_STROKE × the stroke (half the paper's loop-model accuracy of about 1 %)."""
+TIE_NOISE = 2.0
+"""A held-out unit where two models both stay below this × the sensor noise is a tie."""
 FIT_GRID_MAX = 12000
 """Most grid points a fit simulates per session (longer sessions get a coarser fitting grid)."""
 FIT_DT_MIN = 0.05
@@ -67,6 +74,8 @@ _BASE = {
     "h_w": (10.0, 0.5, 80.0, 10.0),
     "c_mid": (10.0, -50.0, 250.0, 50.0),
     "c_w": (10.0, 0.5, 80.0, 10.0),
+    "h_shape": (0.3, 0.0, 1.0, 0.3),
+    "c_shape": (0.3, 0.0, 1.0, 0.3),
     "tau_heat_s": (0.1, 0.0, 5.0, 0.05),
     "tau_cool_s": (0.5, 0.0, 5.0, 0.2),
     "shrink_k_per_mpa": (0.03, 0.0, 0.1, 0.0),
@@ -76,10 +85,18 @@ _EXT = {
     "latent_heat": {"lat_k": (20.0, 0.0, 80.0, 10.0)},
     "stress_shift": {"ss_k_per_mpa": (0.1, -0.3, 1.0, 0.1)},
     "convection_nonlinear": {"conv_k": (0.005, 0.0, 0.1, 0.003)},
-    "sensor_lag": {"lag_s": (0.2, 0.0, 10.0, 0.2)},
+    "sensor_lag": {"lag_s": (0.2, 0.0, 10.0, 0.2), "delay_s": (0.2, 0.0, 10.0, 0.0)},
     "ambient_drift": {"drift_k_h": (5.0, -60.0, 60.0, 0.0)},
     "cycle_drift": {"cyc_rate": (2e-4, -3e-3, 3e-3, 0.0), "cyc_nsat": (20.0, 1.0, 1000.0, 30.0)},
 }
+
+
+FRESH_STARTS = {
+    "convection_nonlinear": (0.008, 0.02),
+    "latent_heat": (15.0, 30.0),
+    "phase_resistance": (-0.2, 0.2),
+}
+"""Values of the coupled candidates' parameter for extra starts found from the data alone."""
 
 
 @dataclass
@@ -94,6 +111,7 @@ class FitResult:
     model: str
     names: list[str]
     x: np.ndarray
+    cov: np.ndarray  # covariance of x, physical units
     se: np.ndarray
     values: dict[str, float]
     linear: dict[str, float]
@@ -185,48 +203,48 @@ def make_problem(sessions: list[SessionData], requested: list[str] | None = None
     return prob
 
 
-def _split_mask(s: SessionData) -> np.ndarray:
-    """True on the training part: first two thirds of the complete cycles (or samples)."""
+N_BLOCKS = 3
+"""Blocked cross-validation: each session's cycles fall into this many contiguous blocks, and
+every block is held out once (so every cycle gives held-out evidence)."""
+
+
+def _blocks(s: SessionData) -> np.ndarray:
+    """Block 0 … N_BLOCKS-1 of every sample: contiguous groups of whole cycles (a session with
+    fewer cycles than blocks: contiguous thirds of its samples)."""
+    ids = np.unique(s.cycle)
+    if len(ids) >= N_BLOCKS:
+        block_of_id = (np.arange(len(ids)) * N_BLOCKS) // len(ids)
+        return block_of_id[np.searchsorted(ids, s.cycle)]
     n = len(s.t)
-    cyc = s.cycle
-    ids = np.unique(cyc)
-    if len(ids) >= 3:
-        n_train = int(math.ceil(2.0 * len(ids) / 3.0))
-        if n_train >= len(ids):
-            n_train = len(ids) - 1
-        return cyc < ids[n_train]
-    m = np.zeros(n, dtype=bool)
-    m[: int(round(2.0 * n / 3.0))] = True
-    return m
+    return (np.arange(n) * N_BLOCKS) // n
 
 
 def make_folds(prob: Problem) -> list[Fold]:
+    """One load: one fold per block, held out, trained on the other blocks. Two loads: one
+    fold per load and block (the other load always trains: a stress slope needs both). Three
+    loads or more: leave one load out."""
     sessions = prob.sessions
     loads = stress_groups(sessions)
+    blocks = {s.name: _blocks(s) for s in sessions}
 
     def group(s):
         if s.stress_mpa is None:
             return 0
         return int(np.argmin([abs(s.stress_mpa - x) for x in loads]))
 
-    if len(loads) <= 1:
-        train = {s.name: _split_mask(s) for s in sessions}
-        return [Fold("time split", train, {k: ~v for k, v in train.items()})]
     folds = []
-    for li, load in enumerate(loads):
-        train, test = {}, {}
-        for s in sessions:
-            n = len(s.t)
-            if group(s) != li:
-                train[s.name] = np.ones(n, dtype=bool)
-                test[s.name] = np.zeros(n, dtype=bool)
-            elif len(loads) == 2:
-                m = _split_mask(s)
-                train[s.name], test[s.name] = m, ~m
-            else:
-                train[s.name] = np.zeros(n, dtype=bool)
-                test[s.name] = np.ones(n, dtype=bool)
-        folds.append(Fold(f"load {load:.0f} MPa held out", train, test))
+    if len(loads) >= 3:
+        for li, load in enumerate(loads):
+            test = {s.name: np.full(len(s.t), group(s) == li) for s in sessions}
+            train = {k: ~v for k, v in test.items()}
+            folds.append(Fold(f"load {load:.0f} MPa held out", train, test))
+        return folds
+    for li, load in enumerate(loads or [None]):
+        for b in range(N_BLOCKS):
+            test = {s.name: (blocks[s.name] == b) & (group(s) == li) for s in sessions}
+            train = {k: ~v for k, v in test.items()}
+            where = f"load {load:.0f} MPa, " if len(loads) == 2 else ""
+            folds.append(Fold(f"{where}block {b + 1}/{N_BLOCKS} held out", train, test))
     return folds
 
 
@@ -237,12 +255,15 @@ def _spec(prob: Problem, model: str) -> tuple[list[str], np.ndarray, np.ndarray,
     names = []
     if "current" in kinds:
         names += ["tau_s"]
-    names += ["h_mid", "h_w", "c_mid", "c_w"]
+    names += ["h_mid", "h_w", "c_mid", "c_w", "h_shape", "c_shape"]
     if "current" in kinds:
         names += ["tau_heat_s", "tau_cool_s"]
-    if len(stress_groups(prob.sessions)) >= 3:
-        # loops narrow under load (paper Fig. 11); with two loads one branch of one load is
-        # held out, and narrowing and a common shift could not both be learnt: width fixed
+    n_loads = len(stress_groups(prob.sessions))
+    if n_loads >= 3 or (n_loads == 2 and all(len(np.unique(s.cycle)) >= 3 for s in prob.sessions)):
+        # loops narrow under load (paper Fig. 11). Two loads: learnt when the training part
+        # holds complete cycles of both (three cycles or more per session); a single loop per
+        # load (thermometer loops) loses part of a branch to the held-out third, and narrowing
+        # and a common shift could not both be learnt from the rest: width fixed then
         names += ["shrink_k_per_mpa"]
     table = dict(_BASE)
     if model != "baseline":
@@ -268,13 +289,15 @@ def _obs_on_grid(pos: np.ndarray, idx: np.ndarray, mask: np.ndarray, m: int):
 
 
 class _Objective:
-    """Training residuals of one model on one fold, linear parameters projected out."""
+    """Training residuals of one model on one fold (position on the fitting grid, mm), linear
+    parameters projected out; ``clusters`` holds the cycle of every residual."""
 
     def __init__(self, prob: Problem, fold: Fold, names: list[str], scale: np.ndarray) -> None:
         self.prob = prob
         self.names = names
         self.scale = scale
         self.items = []
+        clusters = []
         for s in prob.sessions:
             mask = fold.train[s.name]
             if not mask.any():
@@ -282,7 +305,12 @@ class _Objective:
             g, idx = prob.fit_grids[s.name]
             obs, cnt = _obs_on_grid(s.pos, idx, mask, len(g.t))
             sel = np.flatnonzero(cnt > 0)
+            cyc = np.zeros(len(g.t), dtype=np.int64)
+            cyc[idx[mask]] = s.cycle[mask]
+            k = len(self.items)
             self.items.append((s, g, sel, obs[sel]))
+            clusters.append(k * 1_000_000 + cyc[sel])
+        self.clusters = np.concatenate([*clusters, np.zeros(0, dtype=np.int64)])
         self.fixed = {"sigma_ref": prob.sigma_ref}
         self.nfev = 0
         self.last_linear: dict[str, float] = {}
@@ -311,9 +339,9 @@ class _Objective:
         coef, *_ = np.linalg.lstsq(x_mat, y, rcond=None)
         r = y - x_mat @ coef
         if not np.all(np.isfinite(r)):
-            return np.full_like(y, 1e3)
+            return np.full_like(r, 1e3)
         self.last_offsets = {it[0].name: float(coef[k]) for k, it in enumerate(self.items)}
-        self.last_linear = {"eps_l": float(coef[n_s]), "alpha_per_k": float(coef[n_s + 1])}
+        self.last_linear = {n: float(c) for n, c in zip(LINEAR, coef[n_s:], strict=True)}
         return r
 
 
@@ -337,15 +365,19 @@ def _initial_temps(temp: np.ndarray, pos: np.ndarray) -> dict[str, float]:
 
 
 def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray:
+    """A start from the data alone: for a few thermal time constants, the transformation
+    windows read off position against the temperature they give; the best of them by cost.
+    Parameters other than these keep their value in ``start`` (a candidate's own, say)."""
     x = start.copy()
     idx = {n: i for i, n in enumerate(names)}
     fixed = {"sigma_ref": prob.sigma_ref}
+    extra = {n: float(x[i]) for n, i in idx.items() if n not in _BASE}
 
     def temps_for(tau: float):
         ts, ps = [], []
         for s in prob.sessions:
             g, gidx = prob.fit_grids[s.name]
-            p = dict(fixed, tau_s=tau, h_mid=0, h_w=1, c_mid=0, c_w=1)
+            p = dict(fixed, tau_s=tau, h_mid=0, h_w=1, c_mid=0, c_w=1, **extra)
             temp = simulate_temperature_only(g, p)
             mask = fold.train[s.name]
             ts.append(temp[gidx[mask]])
@@ -384,6 +416,19 @@ def fit_model(
     max_nfev: int | None = None,
 ) -> FitResult:
     """Fit ``model`` ('baseline' or a candidate) on the fold's training part."""
+    # one BLAS thread: the Jacobians are tall and thin (n × ~12), where a threaded OpenBLAS
+    # SVD is ~50× slower than a serial one on a busy 2-core machine; parallelism is per fit
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit_model(prob, fold, model, base, max_nfev)
+
+
+def _fit_model(
+    prob: Problem,
+    fold: Fold,
+    model: str,
+    base: FitResult | None,
+    max_nfev: int | None,
+) -> FitResult:
     t0 = time.perf_counter()
     if max_nfev is None:
         max_nfev = 60 if base is None else 100
@@ -404,17 +449,27 @@ def fit_model(
         xs = x0.copy()
         xs[names.index(pname)] = v
         starts.append(xs)
+    if base is not None and model in FRESH_STARTS:
+        # a strong coupled effect bends the baseline's thermal parameters far from their true
+        # values, and the fit from there can stall: fresh starts from the data, the effect on
+        pname = next(n for n in names if n not in _BASE)
+        for v in FRESH_STARTS[model]:
+            xs = start.copy()
+            xs[names.index(pname)] = v
+            starts.append(np.clip(_start(prob, fold, names, scale, lo, hi, xs), lo, hi))
     if model == "sensor_lag" and "tau_heat_s" in names:
         # the baseline's kinetic lags absorb a sensor delay (equal lags on both branches look
         # like one): a second start moves their common part into the sensor lag
-        ih, ic, il = names.index("tau_heat_s"), names.index("tau_cool_s"), names.index("lag_s")
+        ih, ic = names.index("tau_heat_s"), names.index("tau_cool_s")
         common = min(x0[ih], x0[ic])
         if common > 0.02:
-            xs = x0.copy()
-            xs[il] = min(common, hi[il])
-            xs[ih] -= xs[il]
-            xs[ic] -= xs[il]
-            starts.append(np.clip(xs, lo, hi))
+            for into in ("lag_s", "delay_s"):  # as a filter, or as a dead time
+                xs = x0.copy()
+                il = names.index(into)
+                xs[il] = min(common, hi[il])
+                xs[ih] -= xs[il]
+                xs[ic] -= xs[il]
+                starts.append(np.clip(xs, lo, hi))
 
     def run(xs):
         return least_squares(
@@ -427,7 +482,7 @@ def fit_model(
         res = run(xs)
         if best is None or res.cost < best.cost:
             best = res
-    if base is not None and 2.0 * best.cost > len(best.fun) * base.train_rmse_mm**2 * 1.0001:
+    if base is not None and _rmse(best.fun) > base.train_rmse_mm * 1.00005:
         # worse than the baseline it contains: restart from the baseline (extension off)
         xs = x0.copy()
         for i, n in enumerate(names):
@@ -438,29 +493,41 @@ def fit_model(
             best = res
     res = best
     r = obj(res.x)  # sets last_linear / offsets at the optimum
-    n, k = len(r), len(names)
-    se = _standard_errors(res.jac, r, n, k) * scale
-    x = res.x * scale
+    cov = _covariance(res.jac, r, obj.clusters) * np.outer(scale, scale)
     return FitResult(
-        model=model, names=names, x=x, se=se, values=obj.params(res.x), linear=obj.last_linear,
-        offsets=obj.last_offsets, train_rmse_mm=float(np.sqrt(np.mean(r**2))),
+        model=model, names=names, x=res.x * scale, cov=cov,
+        se=np.sqrt(np.maximum(np.diag(cov), 0.0)), values=obj.params(res.x),
+        linear=obj.last_linear, offsets=obj.last_offsets, train_rmse_mm=_rmse(r),
         nfev=obj.nfev, seconds=time.perf_counter() - t0,
     )  # fmt: skip
 
 
-def _standard_errors(jac: np.ndarray, r: np.ndarray, n: int, k: int) -> np.ndarray:
-    """Parameter standard errors from J'J, inflated for autocorrelated residuals (n_eff)."""
+def _covariance(jac: np.ndarray, r: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """Parameter covariance, cluster-robust (sandwich) with the training cycles as clusters.
+
+    The residuals of a fitted loop model are smooth misfits correlated within a cycle, so
+    J'J·s² would be far too optimistic; the sandwich (J'J)⁻¹·Σ_c (J_c'r_c)(J_c'r_c)'·(J'J)⁻¹
+    lets each cycle count once, with the small-sample factor G/(G-1)·(n-1)/(n-k). With fewer
+    than 3 cycles the classical J'J·s² is inflated by the lag-1 autocorrelation instead."""
+    n, k = jac.shape
     if n <= k:
-        return np.full(k, math.nan)
+        return np.full((k, k), math.nan)
+    try:
+        bread = np.linalg.pinv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((k, k), math.nan)
+    ids, inv = np.unique(clusters, return_inverse=True)
+    g = len(ids)
+    if g >= 3:
+        score = np.zeros((g, k))
+        np.add.at(score, inv, jac * r[:, None])
+        meat = score.T @ score
+        return bread @ meat @ bread * (g / (g - 1.0)) * ((n - 1.0) / (n - k))
     rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if n > 3 and np.std(r) > 0 else 0.0
-    rho = min(max(rho, 0.0), 0.9)  # capped: a smooth misfit would leave no degrees of freedom
+    rho = min(max(rho, 0.0), 0.99)
     n_eff = max(n * (1.0 - rho) / (1.0 + rho), k + 1.0)
     s2 = float(np.sum(r**2)) / max(n_eff - k, 1.0)
-    try:
-        cov = np.linalg.pinv(jac.T @ jac) * s2 * n / n_eff
-    except np.linalg.LinAlgError:
-        return np.full(k, math.nan)
-    return np.sqrt(np.maximum(np.diag(cov), 0.0))
+    return bread * s2 * n / n_eff
 
 
 # --------------------------------------------------------------------------- prediction
@@ -476,7 +543,7 @@ def predict(prob: Problem, fit: FitResult, s: SessionData, train_mask: np.ndarra
     g, idx = prob.full_grids[s.name]
     sim = simulate(g, fit.values)
     lin = fit.linear
-    pos = sim.fixed + lin["eps_l"] * sim.basis[:, 0] + lin["alpha_per_k"] * sim.basis[:, 1]
+    pos = sim.fixed + sim.basis @ np.array([lin[n] for n in LINEAR])
     pos_s = pos[idx]
     if s.name in fit.offsets:
         off = fit.offsets[s.name]
@@ -560,9 +627,15 @@ def ttest_log_greater(a: np.ndarray, b: np.ndarray) -> float:
     return float(r.pvalue) if math.isfinite(r.pvalue) else 1.0
 
 
-def paired_greater(a: np.ndarray, b: np.ndarray) -> float:
+def paired_greater(a: np.ndarray, b: np.ndarray, tie_mm: float = 0.0) -> float:
     """One-sided p that the per-unit errors ``a`` exceed ``b``: the smaller of the Wilcoxon
-    signed-rank and the log-ratio t-test p, Bonferroni-corrected for taking two (× 2)."""
+    signed-rank and the log-ratio t-test p, Bonferroni-corrected for taking two (× 2).
+
+    Units where both errors are below ``tie_mm`` (both models at the sensor noise: a rest at
+    the hot or cold end) are ties and left out: they say nothing about which model is right."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    keep = np.maximum(a, b) >= tie_mm
+    a, b = a[keep], b[keep]
     return min(1.0, 2.0 * min(wilcoxon_greater(a, b), ttest_log_greater(a, b)))
 
 
@@ -576,9 +649,10 @@ def verdict(
 ) -> dict:
     """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs."""
     rows = {}
+    tie = TIE_NOISE * noise_mm
     for c, u in cand_units.items():
         gain = 1.0 - cand_rmse[c] / base_rmse if base_rmse > 0 else 0.0
-        p = paired_greater(base_units, u)
+        p = paired_greater(base_units, u, tie)
         rows[c] = {"gain": gain, "p_value": p, "significant": bool(p < ALPHA and gain >= MIN_GAIN)}
     order = sorted(rows, key=lambda c: -rows[c]["gain"])
     floor = max(FLOOR_NOISE * noise_mm, FLOOR_STROKE * stroke_mm)
@@ -600,7 +674,7 @@ def verdict(
         reason = f"{best}: gain {rows[best]['gain']:.1%}, p = {rows[best]['p_value']:.2g}"
         if runner is not None and rows[runner]["gain"] > 0:
             ratio = rows[runner]["gain"] / rows[best]["gain"]
-            p_sep = paired_greater(cand_units[runner], cand_units[best])
+            p_sep = paired_greater(cand_units[runner], cand_units[best], tie)
             rows[best]["p_vs_runner_up"] = p_sep
             if ratio >= SEPARATION and p_sep >= ALPHA:
                 cause = "unexplained"
@@ -767,7 +841,7 @@ def physical_parameters(an: Analysis, model: str) -> dict[str, dict]:
     for i, n in enumerate(fits[0].names):
         v, u, per = combine([f.x[i] for f in fits], [f.se[i] for f in fits])
         out[n] = {"value": v, "uncertainty": u, "unit": _UNITS.get(n, ""), "per_fold": per}
-    for n in ("eps_l", "alpha_per_k"):
+    for n in LINEAR:
         vals = [f.linear.get(n, math.nan) for f in fits]
         out[n] = {"value": float(np.mean(vals)), "uncertainty": float(np.std(vals)) if
                   len(vals) > 1 else math.nan, "unit": _UNITS[n], "per_fold": vals}  # fmt: skip
@@ -781,23 +855,74 @@ def physical_parameters(an: Analysis, model: str) -> dict[str, dict]:
             "per_fold": [1.0 / v if v > 0 else math.inf for v in out["ss_k_per_mpa"]["per_fold"]],
         }  # fmt: skip
     elif model == "phase_resistance":
-        cur = [s for s in sess if s.kind == "current"]
-        rho = float(np.mean([s.resistance_ohm()[0] * s.area_m2 / (s.length_mm * 1e-3)
-                             for s in cur]))  # fmt: skip
+        vi = resistance_check(an, model)
+        if vi is not None:
+            rho, how = vi["rho_mean_uohm_cm"] * 1e-8, "ρ_mean from V/I at ξ = 0.5"
+            out["resistance_check"] = vi
+        else:
+            cur = [s for s in sess if s.kind == "current"]
+            rho = float(np.mean([s.resistance_ohm()[0] * s.area_m2 / (s.length_mm * 1e-3)
+                                 for s in cur]))  # fmt: skip
+            how = "nominal ρ_mean (no voltage recorded)"
         b, u = out["beta"]["value"], out["beta"]["uncertainty"]
         out["resistivity_difference_uohm_cm"] = {
             "value": b * rho * 1e8, "uncertainty": u * rho * 1e8, "unit": "µΩ·cm",
-            "note": "austenite minus martensite, from R = R_mean·(1 + β(0.5 - ξ))",
-        }
+            "note": f"austenite minus martensite: β·ρ_mean from R = R_mean·(1 + β(0.5 - ξ)), {how}",
+        }  # fmt: skip
     elif model == "latent_heat":
         v, u = out["lat_k"]["value"], out["lat_k"]["uncertainty"]
         out["latent_heat_j_kg"] = {
             "value": v * CP_J_KGK, "uncertainty": u * CP_J_KGK, "unit": "J/kg",
             "note": f"λ·cp with cp = {CP_J_KGK:g} J/(kg·K)",
         }
-    elif model == "sensor_lag" and any(s.row_time for s in sess):
-        out["lag_s"]["unit"] = "samples (no t_s column)"
+    elif model == "sensor_lag":
+        il, idl = fits[0].names.index("lag_s"), fits[0].names.index("delay_s")
+        v, u, per = combine(
+            [f.x[il] + f.x[idl] for f in fits],
+            [math.sqrt(max(f.cov[il, il] + f.cov[idl, idl] + 2 * f.cov[il, idl], 0.0))
+             for f in fits],
+        )  # fmt: skip
+        unit = "samples (no t_s column)" if any(s.row_time for s in sess) else "s"
+        out["sensor_delay_s"] = {
+            "value": v, "uncertainty": u, "unit": unit, "per_fold": per,
+            "note": "mean delay of the reading: first-order lag τ plus dead time",
+        }  # fmt: skip
     return out
+
+
+def resistance_check(an: Analysis, model: str = "baseline") -> dict | None:
+    """V/I against the model's martensite fraction while the current is on (sessions with the
+    wire voltage): R = R_0.5 + ΔR·(0.5 - ξ) by least squares, as resistivities. A direct
+    measurement of ``phase_resistance`` that does not go through the heat balance."""
+    xs, ys, geo = [], [], []
+    for s in an.prob.sessions:
+        if s.voltage is None or s.current is None:
+            continue
+        i = s.current
+        on = np.isfinite(s.voltage) & (i > 0.2 * np.max(i)) & (i > 0.02)
+        if on.sum() < 20:
+            continue
+        xi = an.preds[model][s.name].xi[on]
+        xs.append(0.5 - xi)
+        ys.append(s.voltage[on] / i[on] * s.area_m2 / (s.length_mm * 1e-3) * 1e8)  # µΩ·cm
+        geo.append(s.name)
+    if not xs:
+        return None
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    if np.ptp(x) < 0.3:
+        return None  # the current-on samples do not span the transformation
+    a = np.column_stack((np.ones_like(x), x))
+    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    r = y - a @ coef
+    cov = np.linalg.pinv(a.T @ a) * float(np.sum(r**2)) / max(len(y) - 2, 1)
+    return {
+        "rho_mean_uohm_cm": float(coef[0]),
+        "difference_uohm_cm": float(coef[1]),
+        "difference_uncertainty_uohm_cm": float(math.sqrt(max(cov[1, 1], 0.0))),
+        "rms_uohm_cm": float(np.sqrt(np.mean(r**2))),
+        "samples": len(y),
+        "sessions": geo,
+    }
 
 
 _UNITS = {
@@ -806,6 +931,8 @@ _UNITS = {
     "h_w": "K",
     "c_mid": "°C",
     "c_w": "K",
+    "h_shape": "1 (0 cosine … 1 logistic)",
+    "c_shape": "1 (0 cosine … 1 logistic)",
     "tau_heat_s": "s",
     "tau_cool_s": "s",
     "shrink_k_per_mpa": "K/MPa",
@@ -814,11 +941,13 @@ _UNITS = {
     "ss_k_per_mpa": "K/MPa",
     "conv_k": "1/K",
     "lag_s": "s",
+    "delay_s": "s",
     "drift_k_h": "K/h",
     "cyc_rate": "strain/cycle",
     "cyc_nsat": "cycles",
     "eps_l": "strain",
     "alpha_per_k": "1/K",
+    "eps_mix": "strain (× ξ(1-ξ))",
 }
 
 EFFECT_PARAMETER = {
@@ -826,7 +955,7 @@ EFFECT_PARAMETER = {
     "latent_heat": "latent_heat_j_kg",
     "stress_shift": "stress_rate_mpa_per_k",
     "convection_nonlinear": "conv_k",
-    "sensor_lag": "lag_s",
+    "sensor_lag": "sensor_delay_s",
     "ambient_drift": "drift_k_h",
     "cycle_drift": "cyc_rate",
 }

@@ -14,14 +14,15 @@ Candidate extensions (each its own parameters, 0 = off), in SI-like units inside
 - ``latent_heat``: T += λ·Δξ per step (λ = L/cp, K per unit ξ).
 - ``stress_shift``: all transformation temperatures move by s·(σ - σ_ref) (s = 1/slope, K/MPa).
 - ``convection_nonlinear``: h = h0·(1 + k·(T - T_room)).
-- ``sensor_lag``: first-order lag of the position reading, τ s.
+- ``sensor_lag``: the position reading lags: a first-order lag τ (s, a filter) followed by a
+  dead time d (s, transport and buffering); reported as their sum, the mean delay τ + d.
 - ``ambient_drift``: T_room = recorded ambient + d·t (K/h), unmeasured.
 - ``cycle_drift``: residual strain r·n_sat·(1 - exp(-N/n_sat)), N = transformation cycles
   counted as Σ|Δξ|/2 (r strain per cycle, n_sat the saturation constant in cycles).
 
-The coupled effects (phase_resistance, latent_heat, convection_nonlinear) make the heat balance
-depend on ξ or T itself: they run a sequential loop of plain floats for the temperature; all
-else is vectorised (``scipy.signal.lfilter``, one numpy expression per hysteresis run).
+Temperature and ξ come from one sequential pass over the grid compiled with numba (the coupled
+effects phase_resistance, latent_heat and convection_nonlinear make the heat balance depend on
+ξ or T itself); the sensor lag and the length are vectorised (``scipy.signal.lfilter``).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 from scipy.signal import lfilter
 
@@ -41,6 +43,11 @@ DCOMPLIANCE_PER_MPA = 1.0 / E_MARTENSITE_MPA - 1.0 / E_AUSTENITE_MPA
 T_REF_C = 22.0
 G_M_S2 = 9.80665
 _EPS_T = 1e-9
+LOGISTIC_K = 2.0 * math.pi
+"""Logistic branch steepness per unit window: the same slope at the centre as the cosine."""
+
+LINEAR = ("eps_l", "alpha_per_k", "eps_mix")
+"""Coefficients of the basis columns, solved by linear least squares inside every fit."""
 
 CANDIDATES = (
     "phase_resistance",
@@ -92,15 +99,6 @@ class ModelSpec:
 
 
 # --------------------------------------------------------------------------- helpers
-def uniform_filter(a: float, u: np.ndarray, x0: float) -> np.ndarray:
-    """x[0] = x0, x[n+1] = a·x[n] + u[n]; returns len(u) + 1 values (lfilter)."""
-    out = np.empty(len(u) + 1)
-    out[0] = x0
-    if len(u):
-        out[1:] = lfilter([1.0], [1.0, -a], u, zi=[a * x0])[0]
-    return out
-
-
 def lag_foh(u: np.ndarray, dt: float, tau: float, x0: float) -> np.ndarray:
     """First-order lag x' = (u - x)/τ, exact for ``u`` linear between samples (first-order
     hold, accurate on coarse grids); x[0] = x0, returns len(u) values."""
@@ -134,17 +132,24 @@ def directions(temp: np.ndarray) -> np.ndarray:
     return s[idx]
 
 
-def runs(direction: np.ndarray) -> list[tuple[int, int, int]]:
-    """Maximal runs of equal direction → (start, end, value); the plant's own helper."""
-    from smabench.physics.plant import _runs
-
-    return _runs(direction)
-
-
 def cosine_down(temp, lo: float, hi: float):
     """1 below ``lo``, 0 above ``hi``, half-cosine between."""
     x = np.clip((temp - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
     return 0.5 * (1.0 + np.cos(np.pi * x))
+
+
+def branch_down(temp, lo: float, hi: float, shape: float):
+    """Major branch falling from 1 to 0 across [lo, hi]: ``(1 - shape)·cosine + shape·logistic``.
+
+    ``shape`` 0…1: 0 is the compact half-cosine (Liang–Rogers), 1 a logistic of the same centre
+    and mid slope, whose tails reach beyond [lo, hi] (the erf-like branches of a Preisach
+    distribution of switching temperatures, Ikuta's model)."""
+    out = cosine_down(temp, lo, hi)
+    if shape:
+        w = max(hi - lo, 1e-6)
+        z = np.clip(LOGISTIC_K * (np.asarray(temp) - 0.5 * (lo + hi)) / w, -60.0, 60.0)
+        out = (1.0 - shape) * out + shape / (1.0 + np.exp(z))
+    return out
 
 
 class Temps:
@@ -158,152 +163,142 @@ class Temps:
         cm = p["c_mid"] + half_shrink + shift
         self.as_c, self.af_c = hm - 0.5 * p["h_w"], hm + 0.5 * p["h_w"]
         self.mf_c, self.ms_c = cm - 0.5 * p["c_w"], cm + 0.5 * p["c_w"]
+        self.h_shape = p.get("h_shape", 0.0)
+        self.c_shape = p.get("c_shape", 0.0)
 
     def heat(self, temp):
-        return cosine_down(temp, self.as_c, self.af_c)
+        return branch_down(temp, self.as_c, self.af_c, self.h_shape)
 
     def cool(self, temp):
-        return cosine_down(temp, self.mf_c, self.ms_c)
+        return branch_down(temp, self.mf_c, self.ms_c, self.c_shape)
 
 
-# --------------------------------------------------------------------------- temperature
-def temperature(g: Grid, p: dict[str, float]) -> np.ndarray:
-    """Wire temperature on the grid, °C (measured for thermometer loops)."""
-    if g.kind == "thermo":
-        return g.temp
-    tau = p["tau_s"]
-    conductance = g.heat_capacity_j_k / tau
-    k_a2 = g.resistance_ohm / conductance  # K per A²
-    n = len(g.t)
-    amb = g.amb
-    drift = p.get("drift_k_h", 0.0)
-    if drift:
-        amb = amb + drift / 3600.0 * (g.t - g.t[0])
-    if not (p.get("beta") or p.get("lat_k") or p.get("conv_k")):
-        a = math.exp(-g.dt / tau)
-        t_inf = amb[:-1] + k_a2 * g.i2
-        return uniform_filter(a, (1.0 - a) * t_inf, float(amb[0]))[:n]
-    return _temperature_coupled(g, p, amb, k_a2)
+# --------------------------------------------------------------------------- wire state
+def _foh(dt: float, tau: float) -> tuple[float, float, float]:
+    """(b, c1, c0) of the first-order lag x[n+1] = b·x[n] + c1·u[n+1] + c0·u[n], exact for
+    ``u`` linear between grid points (accurate on coarse grids); τ ≤ 1 µs: x = u."""
+    if tau <= 1e-6:
+        return 0.0, 1.0, 0.0
+    b = math.exp(-dt / tau)
+    c1 = 1.0 - tau * (1.0 - b) / dt
+    return b, c1, (1.0 - b) - c1
 
 
-def _temperature_coupled(g: Grid, p: dict[str, float], amb: np.ndarray, k_a2: float):
-    """Sequential heat balance with ξ- or T-dependent terms (plain floats).
+def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Temperature (°C) and martensite fraction ξ on the grid.
 
-    The same discrete equations as the plant's ``Plant.step``; per step only what changes is
-    computed: the reference of the scaled branch at each reversal, the cosine inside the
-    transformation band only, the exponential only when convection makes it T-dependent."""
+    Current-driven grids: the heat balance (exact zero-order-hold steps) from the recorded
+    ambient (plus ``drift_k_h``) with the coupled terms of the candidates; thermometer loops:
+    the measured temperature. ξ: scaled branches from the last reversal (return-point memory),
+    first-order lags τ_heat / τ_cool behind the equilibrium on each branch."""
     tt = Temps(p, g.stress_mpa)
-    as_c, af_c, mf_c, ms_c = tt.as_c, tt.af_c, tt.mf_c, tt.ms_c
-    wh = max(af_c - as_c, 1e-6)
-    wc = max(ms_c - mf_c, 1e-6)
-    beta = p.get("beta", 0.0)
-    lat = p.get("lat_k", 0.0)
-    conv = p.get("conv_k", 0.0)
-    tau_c = p.get("tau_cool_s", 0.0)
-    bc = math.exp(-g.dt / tau_c) if tau_c > 1e-6 else 0.0
-    tau_h = p.get("tau_heat_s", 0.0)
-    bh = math.exp(-g.dt / tau_h) if tau_h > 1e-6 else 0.0
-    rate = g.dt / p["tau_s"]
-    a_const = math.exp(-rate)
-    cos, pi, exp = math.cos, math.pi, math.exp
-    ph, pc = pi / wh, pi / wc
-    heat_in = (k_a2 * g.i2).tolist()
-    ambl = amb.tolist()
-    n = len(g.t)
-    out = [0.0] * n
-    temp = ambl[0]
-    out[0] = temp
-    xi = xi_eq = xi_r = 1.0
+    thermo = g.kind == "thermo"
+    if thermo:
+        temp_in, heat_k, amb, rate = np.ascontiguousarray(g.temp, dtype=float), _NONE, _NONE, 0.0
+        tau_h = tau_c = 0.0
+    else:
+        k_a2 = g.resistance_ohm * p["tau_s"] / g.heat_capacity_j_k  # K per A²
+        amb = g.amb
+        drift = p.get("drift_k_h", 0.0)
+        if drift:
+            amb = amb + drift / 3600.0 * (g.t - g.t[0])
+        temp_in, heat_k, rate = _NONE, k_a2 * g.i2, g.dt / p["tau_s"]
+        amb = np.ascontiguousarray(amb, dtype=float)
+        tau_h, tau_c = p.get("tau_heat_s", 0.0), p.get("tau_cool_s", 0.0)
+    return _wire_kernel(
+        thermo, temp_in, heat_k, amb, rate,
+        p.get("beta", 0.0), p.get("lat_k", 0.0), p.get("conv_k", 0.0),
+        *_foh(g.dt, tau_h), *_foh(g.dt, tau_c),
+        tt.as_c, tt.af_c, tt.h_shape, tt.mf_c, tt.ms_c, tt.c_shape,
+    )  # fmt: skip
+
+
+_NONE = np.zeros(0)
+
+
+@numba.njit(cache=True, inline="always")
+def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
+    """Scalar :func:`branch_down` (sign +1); sign -1 gives its complement 1 - branch_down."""
+    w = max(hi - lo, 1e-6)
+    if t <= lo:
+        v = 1.0
+    elif t >= hi:
+        v = 0.0
+    else:
+        v = 0.5 * (1.0 + math.cos(math.pi * (t - lo) / w))
+    if shape != 0.0:
+        z = LOGISTIC_K * (t - 0.5 * (lo + hi)) / w
+        z = min(max(z, -60.0), 60.0)
+        v = (1.0 - shape) * v + shape / (1.0 + math.exp(z))
+    return v if sign > 0 else 1.0 - v
+
+
+@numba.njit(cache=True)
+def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
+                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc):  # fmt: skip
+    """One pass over the grid (the same discrete equations as the plant's ``Plant.step``).
+
+    ``heat_k[n]`` = R·I²/conductance (K) over step n, ``rate`` = dt/τ; the heat input scales
+    with 1 + β(0.5 - ξ), the conductance with 1 + k(T - T_a); latent heat adds λ·Δξ. A new
+    direction of T (moves below 1e-9 K keep the last one) starts a scaled branch at the
+    reversal; ξ lags its equilibrium value by (b, c1, c0) per branch (see :func:`_foh`)."""
+    n = len(temp_in) if thermo else len(amb)
+    temp_out = np.empty(n)
+    xi_out = np.empty(n)
+    temp = temp_in[0] if thermo else amb[0]
+    temp_out[0] = temp
+    xi = 1.0
+    xi_eq = 1.0
+    xi_r = 1.0
+    xi_out[0] = 1.0
     ref = 1.0
     direction = 0
-    eps = _EPS_T
+    a_const = math.exp(-rate)
     for k in range(n - 1):
-        ta = ambl[k]
-        q = heat_in[k]
-        if beta:
-            q *= 1.0 + beta * (0.5 - xi)
-        if conv:
-            gf = 1.0 + conv * (temp - ta)
-            if gf < 0.05:
-                gf = 0.05
-            t_inf = ta + q / gf
-            new = t_inf + (temp - t_inf) * exp(-rate * gf)
+        if thermo:
+            new = temp_in[k + 1]
         else:
-            t_inf = ta + q
-            new = t_inf + (temp - t_inf) * a_const
+            ta = amb[k]
+            q = heat_k[k]
+            if beta != 0.0:
+                q *= 1.0 + beta * (0.5 - xi)
+            if conv != 0.0:
+                gf = max(1.0 + conv * (temp - ta), 0.05)
+                t_inf = ta + q / gf
+                new = t_inf + (temp - t_inf) * math.exp(-rate * gf)
+            else:
+                t_inf = ta + q
+                new = t_inf + (temp - t_inf) * a_const
         d = new - temp
-        dn = 1 if d > eps else (-1 if d < -eps else direction)
-        if dn != direction:
-            xi_r, direction = xi_eq, dn
-            if dn > 0:  # ξ_h at the reversal
-                x = (temp - as_c) / wh
-                ref = 1.0 if x <= 0.0 else (0.0 if x >= 1.0 else 0.5 * (1.0 + cos(pi * x)))
-                ref = xi_r / max(ref, 1e-12)
-            else:  # 1 - ξ_c at the reversal
-                x = (temp - mf_c) / wc
-                ref = 0.0 if x <= 0.0 else (1.0 if x >= 1.0 else 0.5 * (1.0 - cos(pi * x)))
-                ref = (1.0 - xi_r) / max(ref, 1e-12)
+        dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
+        if dn != direction:  # a reversal: the scaled branch starts here
+            xi_r = xi_eq
+            direction = dn
+            if dn > 0:
+                ref = xi_r / max(_branch(temp, as_c, af_c, sh, 1.0), 1e-12)
+            else:
+                ref = (1.0 - xi_r) / max(_branch(temp, mf_c, ms_c, sc, -1.0), 1e-12)
+        xi_eq_old = xi_eq
         if dn > 0:
-            if new <= as_c:
-                gt = 1.0
-            elif new >= af_c:
-                gt = 0.0
-            else:
-                gt = 0.5 * (1.0 + cos(ph * (new - as_c)))
-            xi_eq = ref * gt
-            if xi_eq > xi_r:
-                xi_eq = xi_r
-            xi_new = bh * xi + (1.0 - bh) * xi_eq
+            xi_eq = min(ref * _branch(new, as_c, af_c, sh, 1.0), xi_r)
+            xi_new = bh * xi + c1h * xi_eq + c0h * xi_eq_old
         elif dn < 0:
-            if new <= mf_c:
-                gt = 0.0
-            elif new >= ms_c:
-                gt = 1.0
-            else:
-                gt = 0.5 * (1.0 - cos(pc * (new - mf_c)))  # 1 - ξ_c
-            xi_eq = 1.0 - ref * gt
-            if xi_eq < xi_r:
-                xi_eq = xi_r
-            xi_new = bc * xi + (1.0 - bc) * xi_eq
+            xi_eq = max(1.0 - ref * _branch(new, mf_c, ms_c, sc, -1.0), xi_r)
+            xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old
         else:
-            xi_new = xi
-        if lat:
+            xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old
+        if lat != 0.0 and not thermo:
             new += lat * (xi_new - xi)
         xi = xi_new
         temp = new
-        out[k + 1] = new
-    return np.asarray(out)
+        temp_out[k + 1] = new
+        xi_out[k + 1] = xi
+    return temp_out, xi_out
 
 
-# --------------------------------------------------------------------------- hysteresis
-def martensite_fraction(
-    temp: np.ndarray, tt: Temps, dt: float, tau_heat: float, tau_cool: float
-) -> np.ndarray:
-    """ξ along a temperature history: scaled branches from the last reversal (return-point
-    memory), first-order lags τ_heat / τ_cool behind the equilibrium on each branch."""
-    n = len(temp)
-    xi_eq = np.empty(n)
-    xi_eq[0] = 1.0
-    rr = runs(directions(temp))
-    for s, e, d in rr:
-        seg = temp[s + 1 : e + 1]
-        t_r, xi_r = float(temp[s]), float(xi_eq[s])
-        if d > 0:
-            ref = max(float(tt.heat(t_r)), 1e-12)
-            xi_eq[s + 1 : e + 1] = np.clip(xi_r * tt.heat(seg) / ref, 0.0, xi_r)
-        elif d < 0:
-            ref = max(1.0 - float(tt.cool(t_r)), 1e-12)
-            up = 1.0 - (1.0 - xi_r) * (1.0 - tt.cool(seg)) / ref
-            xi_eq[s + 1 : e + 1] = np.clip(up, xi_r, 1.0)
-        else:
-            xi_eq[s + 1 : e + 1] = xi_r
-    if tau_cool <= 1e-6 and tau_heat <= 1e-6:
-        return xi_eq
-    xi = xi_eq.copy()
-    for s, e, d in rr:
-        tau = tau_heat if d > 0 else tau_cool
-        xi[s : e + 1] = lag_foh(xi_eq[s : e + 1], dt, tau, float(xi[s]))
-    return xi
+def temperature(g: Grid, p: dict[str, float]) -> np.ndarray:
+    """Wire temperature on the grid, °C (measured for thermometer loops)."""
+    return wire_state(g, p)[0]
 
 
 # --------------------------------------------------------------------------- whole model
@@ -311,18 +306,15 @@ def martensite_fraction(
 class Simulated:
     temp: np.ndarray
     xi: np.ndarray
-    basis: np.ndarray  # columns: ξ·L0 (strain units → mm), (T - 22)·L0; before the sensor lag
+    basis: np.ndarray  # columns (× L0, mm per unit of LINEAR): ξ, T - 22 °C, ξ·(1 - ξ)
     fixed: np.ndarray  # known part: elastic ξ term + residual strain, mm
 
 
 def simulate(g: Grid, p: dict[str, float]) -> Simulated:
-    """Run the model on one grid; position = offset + ε_L·basis0 + α·basis1 + fixed (lagged)."""
-    temp = temperature(g, p)
-    tt = Temps(p, g.stress_mpa)
-    cur = g.kind == "current"
-    tau_h = p.get("tau_heat_s", 0.0) if cur else 0.0
-    tau_c = p.get("tau_cool_s", 0.0) if cur else 0.0
-    xi = martensite_fraction(temp, tt, g.dt, tau_h, tau_c)
+    """Run the model on one grid; position = offset + basis @ (ε_L, α, ε_mix) + fixed, all
+    behind the sensor lag. ε_mix bends the ξ → length map: a modulus mixed by volume (Voigt,
+    as in Brinson's model) instead of compliance (Reuss), or a strain that is not linear in ξ."""
+    temp, xi = wire_state(g, p)
     l0 = g.length_mm
     fixed = l0 * g.stress_mpa * DCOMPLIANCE_PER_MPA * xi
     rate = p.get("cyc_rate", 0.0)
@@ -330,9 +322,20 @@ def simulate(g: Grid, p: dict[str, float]) -> Simulated:
         n_cyc = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(xi))) * 0.5))
         n_sat = p.get("cyc_nsat", 1e3)
         fixed = fixed + l0 * rate * n_sat * (1.0 - np.exp(-n_cyc / n_sat))
-    basis = np.column_stack((l0 * xi, l0 * (temp - T_REF_C)))
+    basis = np.column_stack((l0 * xi, l0 * (temp - T_REF_C), l0 * xi * (1.0 - xi)))
     lag = p.get("lag_s", 0.0)
     if lag > 1e-6:
-        basis = np.column_stack([first_order_lag(basis[:, j], g.dt, lag) for j in range(2)])
+        basis = np.column_stack(
+            [first_order_lag(basis[:, j], g.dt, lag) for j in range(basis.shape[1])]
+        )
         fixed = first_order_lag(fixed, g.dt, lag)
+    delay = p.get("delay_s", 0.0)
+    if delay > 1e-6:
+        basis = np.column_stack([dead_time(basis[:, j], g.t, delay) for j in range(basis.shape[1])])
+        fixed = dead_time(fixed, g.t, delay)
     return Simulated(temp, xi, basis, fixed)
+
+
+def dead_time(x: np.ndarray, t: np.ndarray, delay_s: float) -> np.ndarray:
+    """``x`` read ``delay_s`` late (linear interpolation; the first value before the start)."""
+    return np.interp(t - delay_s, t, x)

@@ -209,7 +209,7 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         thermo, temp_in, heat_k, amb, rate,
         p.get("beta", 0.0), p.get("lat_k", 0.0), p.get("conv_k", 0.0),
         *_foh(g.dt, tau_h), *_foh(g.dt, tau_c),
-        tt.as_c, tt.af_c, tt.h_shape, tt.mf_c, tt.ms_c, tt.c_shape,
+        tt.as_c, tt.af_c, tt.h_shape, tt.mf_c, tt.ms_c, tt.c_shape, p.get("memory", 0.0),
     )  # fmt: skip
 
 
@@ -235,13 +235,16 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
 
 @numba.njit(cache=True)
 def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
-                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc):  # fmt: skip
+                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory):  # fmt: skip
     """One pass over the grid (the same discrete equations as the plant's ``Plant.step``).
 
     ``heat_k[n]`` = R·I²/conductance (K) over step n, ``rate`` = dt/τ; the heat input scales
     with 1 + β(0.5 - ξ), the conductance with 1 + k(T - T_a); latent heat adds λ·Δξ. A new
     direction of T (moves below 1e-9 K keep the last one) starts a scaled branch at the
-    reversal; ξ lags its equilibrium value by (b, c1, c0) per branch (see :func:`_foh`)."""
+    reversal; ξ lags its equilibrium value by (b, c1, c0) per branch (see :func:`_foh`).
+    ``memory`` blends the branch from a reversal (T_r, ξ_r): 0 scales the major branch through
+    the reversal point (the paper's moving common point; Liang–Rogers, Brinson), 1 holds ξ_r
+    until the major branch comes back to it (a Preisach model's wiping-out memory)."""
     n = len(temp_in) if thermo else len(amb)
     temp_out = np.empty(n)
     xi_out = np.empty(n)
@@ -280,10 +283,13 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                 ref = (1.0 - xi_r) / max(_branch(temp, mf_c, ms_c, sc, -1.0), 1e-12)
         xi_eq_old = xi_eq
         if dn > 0:
-            xi_eq = min(ref * _branch(new, as_c, af_c, sh, 1.0), xi_r)
+            major = _branch(new, as_c, af_c, sh, 1.0)
+            xi_eq = min((1.0 - memory) * ref * major + memory * min(major, xi_r), xi_r)
             xi_new = bh * xi + c1h * xi_eq + c0h * xi_eq_old
         elif dn < 0:
-            xi_eq = max(1.0 - ref * _branch(new, mf_c, ms_c, sc, -1.0), xi_r)
+            major = _branch(new, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
+            xi_eq = max((1.0 - memory) * (1.0 - ref * major) + memory * max(1.0 - major, xi_r),
+                        xi_r)  # fmt: skip
             xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old
         else:
             xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old

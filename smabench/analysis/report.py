@@ -13,6 +13,8 @@ import numpy as np
 
 from smabench.analysis.core import (
     ALPHA,
+    ALPHA_SEPARATION,
+    TIE_NOISE,
     EFFECT_PARAMETER,
     MIN_GAIN,
     Analysis,
@@ -106,6 +108,8 @@ def summary(an: Analysis) -> dict:
             "kind": "one-sided paired test on per-unit held-out RMSE: the smaller of the "
             "Wilcoxon signed-rank and the log-ratio t-test p, × 2 (Bonferroni)",
             "alpha": ALPHA,
+            "alpha_separation": ALPHA_SEPARATION,
+            "ties": f"units where both models stay below {TIE_NOISE:g} × the noise are left out",
             "units": len(an.units),
             "min_gain": MIN_GAIN,
             "structured_baseline": v["structured"],

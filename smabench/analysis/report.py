@@ -14,9 +14,9 @@ import numpy as np
 from smabench.analysis.core import (
     ALPHA,
     ALPHA_SEPARATION,
-    TIE_NOISE,
     EFFECT_PARAMETER,
     MIN_GAIN,
+    TIE_NOISE,
     Analysis,
     physical_parameters,
 )

@@ -3,11 +3,12 @@
 Protocol (see ``docs/analysis-flexinol.md`` for a worked example):
 
 1. Folds: blocked cross-validation. Every session's cycles form three contiguous blocks (a
-   session with fewer cycles: thirds of its samples). One load: three folds, each holds one
-   block out and trains on the other two. Two loads: six folds, one per load and block (the
-   other load always trains: with two loads alone a stress slope could not be fitted
-   otherwise). Three loads or more: leave one load out entirely (the held-out sessions only get
-   their sensor zero from their first samples). Every cycle is held out once.
+   session with fewer cycles: thirds of its samples). One or two loads: three folds, each
+   holds one block out of every session and trains on the other two (with two loads, leaving
+   a whole load out would leave no stress slope to learn; two single-loop sessions get six
+   folds, one load's third at a time). Three loads or more: leave one load
+   out entirely (the held-out sessions only get their sensor zero from their first samples).
+   Every cycle is held out once.
 2. Every model (the baseline and each candidate extension) is fitted by ``least_squares`` on the
    training part and then simulated from the input alone (current, or measured temperature) over
    the whole session; the held-out error is taken on the held-out samples. Candidates start from
@@ -227,9 +228,9 @@ def _blocks(s: SessionData) -> np.ndarray:
 
 
 def make_folds(prob: Problem) -> list[Fold]:
-    """One load: one fold per block, held out, trained on the other blocks. Two loads: one
-    fold per load and block (the other load always trains: a stress slope needs both). Three
-    loads or more: leave one load out."""
+    """One or two loads: one fold per block, held out in every session (two single-loop
+    sessions: in one session at a time), trained on the rest (of both loads: a stress slope
+    needs both). Three loads or more: leave one load out."""
     sessions = prob.sessions
     loads = stress_groups(sessions)
     blocks = {s.name: _blocks(s) for s in sessions}
@@ -246,11 +247,19 @@ def make_folds(prob: Problem) -> list[Fold]:
             train = {k: ~v for k, v in test.items()}
             folds.append(Fold(f"load {load:.0f} MPa held out", train, test))
         return folds
-    for li, load in enumerate(loads or [None]):
+    whole_cycles = all(len(np.unique(s.cycle)) >= N_BLOCKS for s in sessions)
+    # blocks of whole cycles: one block of every session at once; blocks inside a single loop
+    # (thermometer loops): one load at a time, so that the other load's same part of the loop
+    # trains (the same third missing from both loops would leave that part unseen)
+    per_load = len(loads) == 2 and not whole_cycles
+    for li, load in enumerate(loads if per_load else [None]):
         for b in range(N_BLOCKS):
-            test = {s.name: (blocks[s.name] == b) & (group(s) == li) for s in sessions}
+            test = {
+                s.name: (blocks[s.name] == b) & (not per_load or group(s) == li)
+                for s in sessions
+            }
             train = {k: ~v for k, v in test.items()}
-            where = f"load {load:.0f} MPa, " if len(loads) == 2 else ""
+            where = f"load {load:.0f} MPa, " if per_load else ""
             folds.append(Fold(f"{where}block {b + 1}/{N_BLOCKS} held out", train, test))
     return folds
 

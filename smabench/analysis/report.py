@@ -38,13 +38,16 @@ def _clean(x):
 
 
 def loop_shift(an: Analysis) -> dict | None:
-    """Model-free check for stress_shift: mid-stroke temperatures of each branch per load
-    (thermometer loops or estimated temperatures), and the stress rate they imply."""
+    """Check for stress_shift: mid-stroke temperatures of each branch per load, and the stress
+    rate they imply. Thermometer loops: the measured temperature (model-free). Current-driven
+    sessions: the temperature the stress_shift model estimates from the current (the
+    baseline's would be bent by the fit to absorb the shift it cannot describe)."""
     pts = []
+    source = "stress_shift" if "stress_shift" in an.preds else "baseline"
     for s in an.prob.sessions:
         if s.stress_mpa is None:
             continue
-        temp = s.temp if s.kind == "thermo" else an.preds["baseline"][s.name].temp_c
+        temp = s.temp if s.kind == "thermo" else an.preds[source][s.name].temp_c
         pos = s.pos
         mid = 0.5 * (np.percentile(pos, 98) + np.percentile(pos, 2))
         d = np.concatenate(([0.0], np.diff(temp)))
@@ -66,6 +69,8 @@ def loop_shift(an: Analysis) -> dict | None:
             {"stress_MPa": p[0], "mid_heating_C": p[2]["heating"], "mid_cooling_C": p[2]["cooling"]}
             for p in pts
         ],
+        "temperature": "measured" if all(s.kind == "thermo" for s in an.prob.sessions)
+        else f"estimated by the {source} model",
         "shift_k_per_mpa": slope_k_per_mpa,
         "stress_rate_mpa_per_k": 1.0 / slope_k_per_mpa if slope_k_per_mpa > 0 else None,
     }

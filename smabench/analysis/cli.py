@@ -55,7 +55,13 @@ def add_commands(sub) -> None:
 def cmd_analyze(args: argparse.Namespace) -> int:
     from smabench.analysis.core import analyse
     from smabench.analysis.data import prepare_session
-    from smabench.analysis.report import summary, write_json, write_predictions, write_report
+    from smabench.analysis.report import (
+        summary,
+        value_text,
+        write_json,
+        write_predictions,
+        write_report,
+    )
     from smabench.sessions import load_session
 
     t0 = time.perf_counter()
@@ -84,11 +90,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if not args.quiet:
         for c, row in doc["candidates"].items():
             (pname, pv), = row["parameter"].items()
-            val, unc = pv.get("value"), pv.get("uncertainty")
-            ptxt = f"{val:.4g} ± {unc:.2g} {pv.get('unit', '')}" if val is not None and \
-                unc is not None else str(val)  # fmt: skip
             print(f"  {c:22s} rmse {row['heldout_rmse_mm']:.4g} mm  gain {row['gain']:7.1%}  "
-                  f"p {row['p_value']:.2g}  {pname} = {ptxt}")  # fmt: skip
+                  f"p {row['p_value']:.2g}  {pname} = {value_text(pv)}")  # fmt: skip
         for c, why in doc["skipped_candidates"].items():
             print(f"  {c:22s} not tried: {why}")
         ls = doc.get("loop_shift_check")

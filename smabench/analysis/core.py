@@ -79,9 +79,9 @@ over it (every k-th cycle; the simulation still runs through all of them)."""
 _BASE = {
     "tau_s": (4.0, 0.2, 120.0, 4.0),
     "h_mid": (10.0, -50.0, 250.0, 70.0),
-    "h_w": (10.0, 0.5, 80.0, 10.0),
+    "h_w": (10.0, 2.0, 80.0, 10.0),
     "c_mid": (10.0, -50.0, 250.0, 50.0),
-    "c_w": (10.0, 0.5, 80.0, 10.0),
+    "c_w": (10.0, 2.0, 80.0, 10.0),
     "h_shape": (0.3, 0.0, 1.0, 0.3),
     "memory": (0.3, 0.0, 1.0, 0.0),
     "c_shape": (0.3, 0.0, 1.0, 0.3),
@@ -987,6 +987,25 @@ EFFECT_PARAMETER = {
     "cycle_drift": "cyc_rate",
 }
 """Candidate → its headline parameter in :func:`physical_parameters`."""
+
+CAUSE_TEXT = {
+    "phase_resistance": "the wire's resistance depends on its phase (austenite and martensite "
+    "resistivities differ), so the heating power I²R changes as it transforms",
+    "latent_heat": "the transformation absorbs heat on heating and releases it on cooling "
+    "(its enthalpy is missing from the heat balance)",
+    "stress_shift": "the transformation temperatures rise with stress (Clausius–Clapeyron): "
+    "the loops of different loads sit at different temperatures",
+    "convection_nonlinear": "heat loss grows faster than linearly with the wire's "
+    "overtemperature (natural convection and radiation)",
+    "sensor_lag": "the displacement reading lags the wire (sensor filter or transport delay)",
+    "ambient_drift": "the room temperature drifts during the session and is not measured",
+    "cycle_drift": "residual strain grows with the number of transformation cycles "
+    "(functional fatigue, training)",
+    "none": "the baseline explains the held-out data to within its accuracy floor",
+    "unexplained": "structure remains that none of the candidate causes removes (or two "
+    "cannot be told apart)",
+}
+"""What each verdict means physically (for reports)."""
 
 __all__ = [
     "COUPLED",

@@ -14,6 +14,7 @@ import numpy as np
 from smabench.analysis.core import (
     ALPHA,
     ALPHA_SEPARATION,
+    CAUSE_TEXT,
     EFFECT_PARAMETER,
     MIN_GAIN,
     TIE_NOISE,
@@ -141,6 +142,20 @@ def summary(an: Analysis) -> dict:
     return _clean(out)
 
 
+def _sentence(text: str) -> str:
+    return f"{text[:1].upper()}{text[1:]}." if text else ""
+
+
+def _num(x, fmt: str) -> str:
+    return "n/a" if x is None else format(x, fmt)
+
+
+def value_text(pv: dict) -> str:
+    """'value ± uncertainty unit' of a parameter entry (uncertainty n/a: not identified)."""
+    return f"{_num(pv.get('value'), '.4g')} ± {_num(pv.get('uncertainty'), '.2g')} " \
+        f"{pv.get('unit', '')}".rstrip()  # fmt: skip
+
+
 def _atomic(path: Path, write) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -266,6 +281,7 @@ def write_report(folder: str | Path, an: Analysis, doc: dict) -> Path:
         "# Discrepancy analysis",
         "",
         f"**Cause: `{doc['cause']}`**, runner-up: `{doc['runner_up']}`.  ",
+        f"{_sentence(CAUSE_TEXT.get(doc['cause'], ''))}  ",
         f"{doc['reason']}",
         "",
         f"Held-out RMSE: baseline {doc['baseline_heldout_rmse_mm']:.4g} mm, extended "
@@ -280,24 +296,27 @@ def write_report(folder: str | Path, an: Analysis, doc: dict) -> Path:
     ]
     for c, row in doc["candidates"].items():
         (pname, pv), = row["parameter"].items()
-        val = pv.get("value")
-        unc = pv.get("uncertainty")
-        ptxt = f"{pname} = {val:.4g} ± {unc:.2g} {pv.get('unit', '')}" if val is not None and \
-            unc is not None else f"{pname} = {val}"  # fmt: skip
         lines.append(f"| {c} | {row['heldout_rmse_mm']:.4g} | {row['gain']:.1%} | "
-                     f"{row['p_value']:.2g} | {ptxt} |")  # fmt: skip
+                     f"{row['p_value']:.2g} | {pname} = {value_text(pv)} |")  # fmt: skip
     if doc["skipped_candidates"]:
         lines += ["", "Not tried: " + "; ".join(f"`{k}` ({v})"
                                                 for k, v in doc["skipped_candidates"].items())]
     lines += ["", f"## Fitted parameters ({doc['extended_model']})", "",
               "| parameter | value | uncertainty | unit |", "|---|---|---|---|"]  # fmt: skip
     for k, pv in doc["parameters"].items():
+        if "value" not in pv:  # a check, not a parameter (resistance_check)
+            continue
         val, unc = pv.get("value"), pv.get("uncertainty")
-        lines.append(f"| {k} | {val:.5g} | {unc:.2g} | {pv.get('unit', '')} |"
-                     if val is not None and unc is not None else f"| {k} | {val} | {unc} | |")
+        lines.append(f"| {k} | {_num(val, '.5g')} | {_num(unc, '.2g')} | {pv.get('unit', '')} |")
+    vi = doc["parameters"].get("resistance_check")
+    if vi:
+        lines += ["", f"V/I against the model's ξ while the current is on: ρ(ξ = 0.5) = "
+                  f"{vi['rho_mean_uohm_cm']:.2f} µΩ·cm, austenite − martensite = "
+                  f"{vi['difference_uohm_cm']:.2f} ± {vi['difference_uncertainty_uohm_cm']:.2g} "
+                  f"µΩ·cm ({vi['samples']} samples)."]  # fmt: skip
     if "loop_shift_check" in doc:
         ls = doc["loop_shift_check"]
-        lines += ["", "## Model-free check: mid-stroke temperatures per load", "",
+        lines += ["", f"## Check: mid-stroke temperatures per load ({ls['temperature']})", "",
                   "| stress (MPa) | heating mid (°C) | cooling mid (°C) |", "|---|---|---|"]
         for p in ls["per_session"]:
             lines.append(f"| {p['stress_MPa']:.1f} | {p['mid_heating_C']:.2f} | "

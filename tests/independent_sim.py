@@ -92,8 +92,11 @@ def current_profile(rng: np.random.Generator, n_cycles: int, dt: float = 5e-3):
     return np.arange(len(cur)) * dt, cur
 
 
-def simulate(world: WireWorld, load_kg: float, t: np.ndarray, current: np.ndarray, seed: int):
-    """Simulate on the uniform grid ``t`` (5 ms); returns a dict of arrays (true, measured)."""
+def simulate(world: WireWorld, load_kg: float, t: np.ndarray, current: np.ndarray, seed: int,
+             temperature_c: np.ndarray | None = None):  # fmt: skip
+    """Simulate on the uniform grid ``t`` (5 ms); returns a dict of arrays (true, measured).
+    ``temperature_c``: a prescribed wire temperature (a chamber loop) instead of the heat
+    balance."""
     w, fx = world, world.effects
     rng = np.random.default_rng(seed)
     r_m = w.diameter_mm * 0.5e-3
@@ -135,7 +138,7 @@ def simulate(world: WireWorld, load_kg: float, t: np.ndarray, current: np.ndarra
     xi = np.empty(n)
     res = np.empty(n)
     amb = w.ambient_c + drift * (t - t[0])
-    temp_k = w.ambient_c
+    temp_k = w.ambient_c if temperature_c is None else float(temperature_c[0])
     xi_k = 1.0
     cycles = 0.0
     heated = False
@@ -159,6 +162,8 @@ def simulate(world: WireWorld, load_kg: float, t: np.ndarray, current: np.ndarra
         k3 = rhs(temp_k + 0.5 * dt * k2, xi_k, i_a, ta)
         k4 = rhs(temp_k + dt * k3, xi_k, i_a, ta)
         new = temp_k + dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        if temperature_c is not None:
+            new = float(temperature_c[k + 1])
         aus |= up <= new
         aus &= ~(down >= new)
         xi_new = 1.0 - float(np.count_nonzero(aus)) / n_h
@@ -240,3 +245,27 @@ def make(folder: Path, effects: dict[str, float], load_kg: float, seed: int,
     sim = simulate(world, load_kg, t, cur, seed)
     write_session(folder, world, load_kg, sim, rate_hz)
     return world, sim
+
+
+def make_thermo(folder: Path, world: WireWorld, load_kg: float, seed: int,
+                rate_k_s: float = 0.5, hot_c: float = 140.0, cold_c: float = 25.0):  # fmt: skip
+    """A thermometer loop as a tensile tester in a chamber records it: the temperature ramps
+    cold → hot → cold at ``rate_k_s``; the session has temperature_C (measured, ±0.05 K) and
+    position_mm, one row per 0.5 s, no current."""
+    up = np.arange(cold_c, hot_c, rate_k_s * 0.005)
+    temp = np.concatenate((up, up[::-1]))
+    t = np.arange(len(temp)) * 0.005
+    sim = simulate(world, load_kg, t, np.zeros(len(t)), seed, temperature_c=temp)
+    rng = np.random.default_rng(seed + 1)
+    sl = slice(None, None, 100)
+    folder.mkdir(parents=True)
+    meta = {"schema_version": 1, "load_kg": load_kg, "status": "completed",
+            "wire": {"length_mm": world.length_mm, "diameter_mm": world.diameter_mm},
+            "source": "tests/independent_sim.py (chamber loop)"}  # fmt: skip
+    (folder / "session.json").write_text(json.dumps(meta, indent=1))
+    with open(folder / "samples.csv", "w", newline="") as fh:
+        wr = csv.writer(fh)
+        wr.writerow(["t_s", "temperature_C", "position_mm"])
+        for tk, temp_k, pos in zip(t[sl], temp[sl], sim["position_mm"][sl], strict=True):
+            wr.writerow([f"{tk:.3f}", f"{temp_k + rng.normal(0.0, 0.05):.3f}", f"{pos:.5f}"])
+    return folder

@@ -10,7 +10,7 @@ import json
 
 import numpy as np
 import pytest
-from independent_sim import WireWorld, make
+from independent_sim import WireWorld, make, make_thermo
 
 from smabench.analysis.cli import main
 from smabench.analysis.core import EFFECT_PARAMETER
@@ -79,3 +79,22 @@ def test_friction_outside_the_list_is_unexplained(tmp_path):
     value = float(np.random.default_rng(2100).uniform(10.0, 20.0))
     doc = analyse(tmp_path, {"pulley_friction": value}, [2.0], seed=401)
     assert doc["cause"] == "unexplained", doc["reason"]
+
+
+@pytest.mark.parametrize("loads", [[1.2, 2.0], [1.0, 2.0, 3.0]], ids=["2 loads", "3 loads"])
+def test_chamber_loops_give_the_stress_rate(tmp_path, loads):
+    """Thermometer loops (one per load, as a tensile tester in a chamber records them); with
+    three loads each is held out whole and predicted from the other two."""
+    rng = np.random.default_rng(2200 + len(loads))
+    value = float(rng.uniform(5.0, 12.0))
+    world = WireWorld.draw(rng, stress_shift=value)
+    folders = [str(make_thermo(tmp_path / f"l{j}", world, load, 500 + j))
+               for j, load in enumerate(loads)]  # fmt: skip
+    out = tmp_path / "a.json"
+    assert main([*folders, "--json", str(out), "-q"]) == 0
+    doc = json.loads(out.read_text())
+    fitted = doc["parameters"]["stress_rate_mpa_per_k"]["value"]
+    print(loads, value, expected("stress_shift", value), fitted)
+    assert doc["cause"] == "stress_shift", doc["reason"]
+    assert fitted == pytest.approx(expected("stress_shift", value), rel=0.15)
+    assert fitted == pytest.approx(doc["loop_shift_check"]["stress_rate_mpa_per_k"], rel=0.10)

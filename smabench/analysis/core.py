@@ -398,10 +398,12 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray
     def temps_for(tau: float):
         ts, ps = [], []
         for s in prob.sessions:
+            mask = fold.train[s.name]
+            if not mask.any():
+                continue
             g, gidx = prob.fit_grids[s.name]
             p = dict(fixed, tau_s=tau, h_mid=0, h_w=1, c_mid=0, c_w=1, **extra)
             temp = simulate_temperature_only(g, p)
-            mask = fold.train[s.name]
             ts.append(temp[gidx[mask]])
             ps.append(s.pos[mask] - np.median(s.pos[mask]))
         return np.concatenate(ts), np.concatenate(ps)

@@ -162,6 +162,9 @@ def _atomic(path: Path, write) -> None:
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
             write(fh)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes it 0600; a report is for everyone
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -273,6 +276,8 @@ def write_report(folder: str | Path, an: Analysis, doc: dict) -> Path:
         ax.plot(s.t[h], (s.pos - e)[h], "-", lw=0.8, label=ext)
         ax.set_ylabel("held-out residual (mm)")
         ax.legend(fontsize=7)
+    for ax in axes[-1]:
+        ax.set_xlabel("sample" if any(s.row_time for s in sess) else "t (s)")
     fig.tight_layout()
     fig.savefig(folder / "before_after.png", dpi=90)
     plt.close(fig)

@@ -1,12 +1,17 @@
-"""Compact physical model of an SMA wire session for the discrepancy analysis (pure numpy).
+"""Compact physical model of an SMA wire session for the discrepancy analysis.
 
 Baseline ("our simulation"): the heat balance eq. (16) with exact zero-order-hold steps on a
-uniform grid (current-driven sessions; thermometer loops use the measured temperature), a
-Liang–Rogers cosine hysteresis for the martensite fraction ξ with return-point memory (the loop
-model's adaptation rules: an incomplete cycle or an inner loop continues from the last reversal
-point, scaled branches), a first-order lag of the forward (cooling, nucleation-limited)
-transformation, and the length ``L0·((ε_L + σ·ΔC)·ξ + α·(T - 22 °C))`` plus a sensor zero.
-With several loads the thermal hysteresis narrows with stress (paper Fig. 11 trend).
+uniform grid (current-driven sessions; thermometer loops use the measured temperature); the
+martensite fraction ξ on major branches between the transformation temperatures, each a blend
+of the Liang–Rogers half-cosine and a logistic of the same centre and mid slope (``h_shape``,
+``c_shape``: 0 cosine … 1 logistic, the erf-like branches of a Preisach distribution); from the
+last reversal the loop model's adaptation rule (``memory`` 0: the major branch scaled through
+the reversal point, the paper's moving common point; 1: ξ held until the major branch returns,
+a Preisach model's wiping-out; between: a blend); first-order lags of ξ behind its equilibrium
+on each branch (``tau_heat_s``, ``tau_cool_s``: the nucleation-limited forward transformation);
+the length ``L0·((ε_L + σ·ΔC)·ξ + ε_mix·ξ(1-ξ) + α·(T - 22 °C))`` plus a sensor zero, with
+ε_L, ε_mix, α and the zero solved linearly. With several loads the thermal hysteresis narrows
+with stress (paper Fig. 11 trend).
 
 Candidate extensions (each its own parameters, 0 = off), in SI-like units inside:
 

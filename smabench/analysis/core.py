@@ -47,6 +47,7 @@ from smabench.analysis.model import (
     Temps,
     directions,
     simulate,
+    temperature,
 )
 
 log = logging.getLogger(__name__)
@@ -404,7 +405,7 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray
                 continue
             g, gidx = prob.fit_grids[s.name]
             p = dict(fixed, tau_s=tau, h_mid=0, h_w=1, c_mid=0, c_w=1, **extra)
-            temp = simulate_temperature_only(g, p)
+            temp = temperature(g, p)
             ts.append(temp[gidx[mask]])
             ps.append(s.pos[mask] - np.median(s.pos[mask]))
         return np.concatenate(ts), np.concatenate(ps)
@@ -425,12 +426,6 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray
         if cost < best[0]:
             best = (cost, xt)
     return best[1]
-
-
-def simulate_temperature_only(g: Grid, p: dict[str, float]) -> np.ndarray:
-    from smabench.analysis.model import temperature
-
-    return temperature(g, p)
 
 
 def fit_model(

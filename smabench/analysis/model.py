@@ -33,7 +33,7 @@ effects phase_resistance, latent_heat and convection_nonlinear make the heat bal
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -87,22 +87,6 @@ class Grid:
     resistance_ohm: float
 
 
-@dataclass
-class ModelSpec:
-    """Which parameters are free and their bounds; values of the fixed ones."""
-
-    names: list[str]
-    x0: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    fixed: dict[str, float] = field(default_factory=dict)
-
-    def values(self, x: np.ndarray) -> dict[str, float]:
-        out = dict(self.fixed)
-        out.update(zip(self.names, (float(v) for v in x), strict=True))
-        return out
-
-
 # --------------------------------------------------------------------------- helpers
 def lag_foh(u: np.ndarray, dt: float, tau: float, x0: float) -> np.ndarray:
     """First-order lag x' = (u - x)/τ, exact for ``u`` linear between samples (first-order
@@ -137,26 +121,6 @@ def directions(temp: np.ndarray) -> np.ndarray:
     return s[idx]
 
 
-def cosine_down(temp, lo: float, hi: float):
-    """1 below ``lo``, 0 above ``hi``, half-cosine between."""
-    x = np.clip((temp - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
-    return 0.5 * (1.0 + np.cos(np.pi * x))
-
-
-def branch_down(temp, lo: float, hi: float, shape: float):
-    """Major branch falling from 1 to 0 across [lo, hi]: ``(1 - shape)·cosine + shape·logistic``.
-
-    ``shape`` 0…1: 0 is the compact half-cosine (Liang–Rogers), 1 a logistic of the same centre
-    and mid slope, whose tails reach beyond [lo, hi] (the erf-like branches of a Preisach
-    distribution of switching temperatures, Ikuta's model)."""
-    out = cosine_down(temp, lo, hi)
-    if shape:
-        w = max(hi - lo, 1e-6)
-        z = np.clip(LOGISTIC_K * (np.asarray(temp) - 0.5 * (lo + hi)) / w, -60.0, 60.0)
-        out = (1.0 - shape) * out + shape / (1.0 + np.exp(z))
-    return out
-
-
 class Temps:
     """Transformation temperatures of one session (°C) from the parameters and its stress."""
 
@@ -170,12 +134,6 @@ class Temps:
         self.mf_c, self.ms_c = cm - 0.5 * p["c_w"], cm + 0.5 * p["c_w"]
         self.h_shape = p.get("h_shape", 0.0)
         self.c_shape = p.get("c_shape", 0.0)
-
-    def heat(self, temp):
-        return branch_down(temp, self.as_c, self.af_c, self.h_shape)
-
-    def cool(self, temp):
-        return branch_down(temp, self.mf_c, self.ms_c, self.c_shape)
 
 
 # --------------------------------------------------------------------------- wire state
@@ -223,7 +181,10 @@ _NONE = np.zeros(0)
 
 @numba.njit(cache=True, inline="always")
 def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
-    """Scalar :func:`branch_down` (sign +1); sign -1 gives its complement 1 - branch_down."""
+    """Major branch falling from 1 to 0 across [lo, hi] (sign +1; sign -1: its complement):
+    ``(1 - shape)·half-cosine + shape·logistic`` of the same centre and mid slope. ``shape``
+    0…1: 0 is the compact Liang–Rogers cosine, 1 a logistic whose tails reach beyond [lo, hi]
+    (the erf-like branches of a Preisach distribution of switching temperatures)."""
     w = max(hi - lo, 1e-6)
     if t <= lo:
         v = 1.0

@@ -1,0 +1,83 @@
+"""The analysis model's compiled pass: heat balance, branch shapes, the adaptation rule, lags."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from smabench.analysis.model import Grid, dead_time, simulate, wire_state
+
+P = {"tau_s": 4.0, "h_mid": 70.0, "h_w": 10.0, "c_mid": 50.0, "c_w": 10.0}
+
+
+def current_grid(i_a: np.ndarray, dt: float = 0.01) -> Grid:
+    n = len(i_a) + 1
+    return Grid("g", "current", np.arange(n) * dt, dt, i_a**2, np.full(n, 22.0), None, 170.0,
+                55.0, 1e-3, 4.0)  # fmt: skip
+
+
+def thermo_grid(temp: np.ndarray) -> Grid:
+    return Grid("g", "thermo", np.arange(len(temp)) * 1.0, 1.0, None, None, temp, 170.0, 55.0,
+                1e-3, 1.0)  # fmt: skip
+
+
+def test_heat_balance_is_the_exact_first_order_step():
+    g = current_grid(np.full(1000, 1.2))
+    temp, _ = wire_state(g, P)
+    k_a2 = g.resistance_ohm * P["tau_s"] / g.heat_capacity_j_k
+    t_inf = 22.0 + k_a2 * 1.44
+    want = t_inf + (22.0 - t_inf) * np.exp(-g.t / P["tau_s"])
+    np.testing.assert_allclose(temp, want, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(("shape", "at_lo"), [(0.0, 1.0), (1.0, 1.0 / (1.0 + math.exp(-math.pi)))])
+def test_branch_shape_cosine_to_logistic(shape, at_lo):
+    """Heating a fully martensitic wire: ξ = 1/2 at the centre; the cosine is still 1 at the
+    window's start, the logistic has begun (its tail)."""
+    temp = np.linspace(40.0, 100.0, 601)
+    _, xi = wire_state(thermo_grid(temp), dict(P, h_shape=shape))
+    assert xi[np.argmin(np.abs(temp - 70.0))] == pytest.approx(0.5, abs=1e-6)
+    assert xi[np.argmin(np.abs(temp - 65.0))] == pytest.approx(at_lo, abs=1e-6)
+
+
+def _partial_cycle(memory: float) -> tuple[np.ndarray, np.ndarray]:
+    """Heat fully, cool to the middle of the cooling window (ξ ≈ 0.5), reheat."""
+    temp = np.concatenate((np.linspace(30, 100, 71), np.linspace(99, 50, 50),
+                           np.linspace(51, 100, 50)))  # fmt: skip
+    _, xi = wire_state(thermo_grid(temp), dict(P, memory=memory))
+    return temp, xi
+
+
+def test_adaptation_rule_scaled_or_wiping_out():
+    temp, scaled = _partial_cycle(0.0)
+    _, held = _partial_cycle(1.0)
+    k_rev = 120  # the reversal at 50 °C, in the middle of the cooling window: ξ_r = 0.5
+    assert temp[k_rev] == 50.0
+    assert scaled[k_rev] == pytest.approx(0.5, abs=1e-9)
+
+    def major(t):  # the major heating branch, window 65…75 °C
+        return 0.5 * (1.0 + math.cos(math.pi * (t - 65.0) / 10.0))
+
+    for t in (66.0, 68.0, 72.0):
+        k = k_rev + int(t - 50.0)
+        assert temp[k] == t
+        # scaled (the paper's moving common point): ξ_r × the major branch
+        assert scaled[k] == pytest.approx(0.5 * major(t), abs=1e-9)
+        # wiping-out: held at ξ_r until the major branch comes down to it (70 °C), then on it
+        assert held[k] == pytest.approx(min(0.5, major(t)), abs=1e-9)
+    half = dict(P, memory=0.5)
+    _, blend = wire_state(thermo_grid(temp), half)
+    k = k_rev + 18
+    assert blend[k] == pytest.approx(0.5 * (scaled[k] + held[k]), abs=1e-9)
+
+
+def test_sensor_lag_and_dead_time_delay_the_reading():
+    g = current_grid(np.concatenate((np.full(300, 1.4), np.zeros(700))))
+    plain = simulate(g, dict(P, tau_heat_s=0.05, tau_cool_s=0.5))
+    delayed = simulate(g, dict(P, tau_heat_s=0.05, tau_cool_s=0.5, delay_s=0.3))
+    np.testing.assert_allclose(delayed.basis[40:, 0], plain.basis[10:-30, 0], atol=1e-12)
+    x = np.sin(np.linspace(0.0, 6.0, 200))
+    t = np.linspace(0.0, 2.0, 200)
+    np.testing.assert_allclose(dead_time(x, t, t[5])[5:], x[:-5], atol=1e-12)

@@ -674,7 +674,12 @@ def verdict(
     noise_mm: float,
     stroke_mm: float,
 ) -> dict:
-    """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs."""
+    """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs.
+
+    Candidates pass when their paired test against the baseline reaches ALPHA and their gain
+    MIN_GAIN; the best passing one is named unless the second passing one leaves less than
+    SEPARATION × its held-out error and cannot be told apart from it at ALPHA_SEPARATION. The
+    runner-up reported is the second passing candidate, or else the next by gain."""
     rows = {}
     tie = TIE_NOISE * noise_mm
     for c, u in cand_units.items():
@@ -697,9 +702,11 @@ def verdict(
     else:
         best = sig[0]
         runner = next((c for c in order if c != best), None)
+        rival = sig[1] if len(sig) > 1 else None  # only a candidate that passes can compete
         cause = best
         reason = f"{best}: gain {rows[best]['gain']:.1%}, p = {rows[best]['p_value']:.2g}"
-        if runner is not None and rows[runner]["gain"] > 0:
+        if rival is not None:
+            runner = rival
             ratio = cand_rmse[runner] / cand_rmse[best]  # ≥ 1: the runner-up's remaining error
             p_sep = paired_greater(cand_units[runner], cand_units[best], tie)
             rows[best]["p_vs_runner_up"] = p_sep

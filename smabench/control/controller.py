@@ -1,22 +1,32 @@
 """The position controller the bench runtime runs at the loop rate: open loop | PID | FF | FF+PID.
 
 :class:`Controller` is a command source for :class:`~smabench.bench.runtime.BenchRuntime`: each
-tick the runtime calls :meth:`Controller.observe` (temperature estimate, ambient, resistance)
-and :meth:`Controller.update` ``(t_s, position_mm)``, which returns a :class:`ControlStep` with
-the current, the setpoint (``setpoint_mm`` column) and the active law (``mode`` column).
+tick the runtime calls :meth:`Controller.observe` (temperature estimate, ambient, resistance,
+position) and :meth:`Controller.update` ``(t_s, position_mm)``, which returns a
+:class:`ControlStep` with the current, the setpoint (``setpoint_mm`` column) and the active law
+(``mode`` column).
 
 Laws, all computed in heating power P (W) and sent as ``I = sqrt(P/R)``:
 
 - ``open_loop``: the wrapped open-loop protocol's current when there is one, else the current
   held at its value when open loop was entered (the GUI may set it: :meth:`set_open_loop_current`);
-- ``pid``: :class:`~smabench.control.pid.PID` on position;
-- ``ff``: :class:`~smabench.control.feedforward.FeedForward` alone;
-- ``ffpid``: feed-forward plus PID on the remaining error. The PID's power share P_pid moves the
-  feed-forward's temperature target by P_pid/(h·A) — the steady temperature change it stands
-  for — and the inverse heat balance makes the power (this path amplifies fast PID changes by
-  about τ/dt, hence the low ``ffpid_gain_scale`` and a loop period ≤ 25 ms); ``T_ff`` then
-  advances with the total power, so the feed-forward does not cancel the
-  PID. The PID gains are scaled by ``ffpid_gain_scale`` on top of the feed-forward.
+- ``pid``: :class:`~smabench.control.pid.PID` on position, output in W. It keeps one integral per
+  direction of the setpoint's motion (the power that holds the wire on the heating branch is
+  not the one that holds it on the cooling branch; the direction comes from the reference alone);
+- ``ff``: :class:`~smabench.control.feedforward.FeedForward` alone, planning from its own
+  heat-balance temperature, with the paper's online adaptation of the loop model (reversal
+  points and branch amplitudes from the measured wire);
+- ``ffpid``: the feed-forward plus feedback on the remaining error, in two parts.
+  A PID in position units (mm/mm, 1/s, s) shifts the setpoint fed to the inverse model: the
+  inverse turns the shifted setpoint into temperature and power, hysteresis gap included, so the
+  loop the PID sees is close to a unit gain (no gap, no slope changes along the branch). A shift
+  back beyond the inverse's reversal deadband reverses the branch, so the PID can undo an
+  overshoot by a trip across the gap; within a branch it may slow the wire but not pull it back
+  more than ``HOLD_MARGIN_K`` below the hottest (heating) / above the coldest (cooling)
+  temperature it reached there. And a :class:`~smabench.control.observer.TemperatureObserver`
+  corrects the temperature the feed-forward plans from and estimates the heat input the heat
+  balance misses (latent heat, a wrong convection coefficient …), which the feed-forward's
+  power then compensates; the paper's adaptation then also uses the observed temperature.
 
 The output range is ``0 … P_max``: 0 because cooling is passive; ``P_max`` from the current limit
 and from a temperature ceiling (the power that would take the estimated temperature above
@@ -24,11 +34,12 @@ and from a temperature ceiling (the power that would take the estimated temperat
 hit by the controller itself).
 
 Switching (:meth:`set_mode`, thread-safe, applied at the start of the next tick; or scripted with
-``switches``) is bumpless: entering ``pid``/``ffpid`` sets the PID integral so that the output
-equals the last command; entering ``ff`` starts a transfer offset equal to the last command
-minus the feed-forward, which decays with ``transfer_s``; entering a law with the feed-forward
-synchronises its temperature to the runtime's estimate; entering ``open_loop`` holds the last
-current. The only change at a switch is then the one the new law makes on its own afterwards.
+``switches``) is bumpless: the first command of the new law equals the last command. Entering
+``pid`` sets the PID integral accordingly; entering ``ff`` or ``ffpid`` synchronises the
+feed-forward's temperature (and the observer's) to the runtime's estimate and starts a transfer
+offset, the last command minus the new law's, which decays with ``transfer_s``; entering
+``open_loop`` holds the last current. The only change at a switch is then the one the new law
+makes on its own afterwards.
 """
 
 from __future__ import annotations
@@ -39,6 +50,7 @@ import threading
 from dataclasses import dataclass
 
 from smabench.control.feedforward import FeedForward
+from smabench.control.observer import TemperatureObserver
 from smabench.control.pid import PID, PIDGains
 from smabench.control.reference import Reference
 from smabench.physics.thermal import thermal_constants
@@ -80,6 +92,8 @@ def parse_switch(text: str) -> tuple[float, str]:
 class Controller:
     """Position controller with live, bumpless switching (see module docstring)."""
 
+    HOLD_MARGIN_K = 1.0
+
     def __init__(
         self,
         wire: Wire,
@@ -95,16 +109,19 @@ class Controller:
         transfer_s: float = 1.0,
         stroke_mm: tuple[float, float] | None = None,
         info: dict | None = None,
-        ffpid_gain_scale: float = 1.0,
+        ffpid: PID | None = None,
+        observer: TemperatureObserver | None = None,
+        ffpid_limit_mm: float = 1.0,
     ) -> None:
         self.wire = wire
         self.current_limit_a = float(current_limit_a)
         self.reference, self.pid, self.ff = reference, pid, feedforward
+        self.ffpid, self.observer = ffpid, observer
+        self.ffpid_limit_mm = ffpid_limit_mm
         self.open_loop = open_loop
         self.t_ceiling_c = t_ceiling_c
         self.ambient_c = ambient_c
         self.transfer_s = transfer_s
-        self.ffpid_gain_scale = ffpid_gain_scale
         self.info = dict(info or {})
         self.heat_capacity, self.conductance = thermal_constants(wire)
         self.resistance_ohm = wire.resistance_mean_ohm
@@ -114,7 +131,7 @@ class Controller:
         self.stroke_mm = stroke_mm
         self._lock = threading.Lock()
         self._pending_mode: str | None = None
-        self._pending_gains: PIDGains | None = None
+        self._pending_gains: tuple[str, PIDGains] | None = None
         self._pending_open_a: float | None = None
         self._check_mode(mode)
         self._mode = mode
@@ -130,8 +147,10 @@ class Controller:
         self._transfer_w = 0.0
         self.mode_log: list[tuple[float, str]] = []
         self._ff_active = False
-        self._branch_integral = {True: 0.0, False: 0.0}
-        self._freeze = 0
+        self._saturation = 0  # +1: last command at P_max, −1: at 0 W
+        self._observed_mm: float | None = None
+        self._ext_c = ambient_c  # FF+PID: the wire's hottest / coldest on this branch
+        self._hold = 0  # FF+PID: +1 / −1 the PID's pull back is held on heating / cooling
 
     # ------------------------------------------------------------------ thread-safe interface
     @property
@@ -146,10 +165,12 @@ class Controller:
             return
         if self.reference is None:
             raise ValueError(f"mode {mode!r} needs a position reference; none is configured")
-        if mode in ("pid", "ffpid") and self.pid is None:
+        if mode == "pid" and self.pid is None:
             raise ValueError(f"mode {mode!r} needs a PID; none is configured")
         if mode in ("ff", "ffpid") and self.ff is None:
             raise ValueError(f"mode {mode!r} needs the feed-forward model; none is configured")
+        if mode == "ffpid" and self.ffpid is None:
+            raise ValueError("mode 'ffpid' needs its PID; none is configured")
 
     def set_mode(self, mode: str) -> None:
         """Switch law at the next tick (bumpless); ValueError if unknown or not configured."""
@@ -157,14 +178,18 @@ class Controller:
         with self._lock:
             self._pending_mode = mode
 
-    def set_gains(self, kp: float, ki: float, kd: float) -> None:
-        """New PID gains from the next tick (the derivative filter is kept)."""
-        if self.pid is None:
-            raise ValueError("no PID configured")
-        g = PIDGains(float(kp), float(ki), float(kd), self.pid.gains.d_filter_s)
+    def set_gains(self, kp: float, ki: float, kd: float, law: str = "pid") -> None:
+        """New gains from the next tick for the PID of ``law``: ``pid`` (W/mm, W/(mm·s),
+        W·s/mm) or ``ffpid`` (mm/mm, 1/s, s); the derivative filter is kept."""
+        target = {"pid": self.pid, "ffpid": self.ffpid}.get(law)
+        if law not in ("pid", "ffpid"):
+            raise ValueError(f"gains are for law pid or ffpid, got {law!r}")
+        if target is None:
+            raise ValueError(f"no PID configured for {law}")
+        g = PIDGains(float(kp), float(ki), float(kd), target.gains.d_filter_s)
         g.validate()
         with self._lock:
-            self._pending_gains = g
+            self._pending_gains = (law, g)
 
     def set_open_loop_current(self, current_a: float) -> None:
         """Current held in open-loop mode (when no open-loop protocol is wrapped)."""
@@ -188,10 +213,11 @@ class Controller:
             self.ambient_c = float(ambient_c)
             if self.ff is not None:
                 self.ff.ambient_c = self.ambient_c
+            if self.observer is not None:
+                self.observer.ambient_c = self.ambient_c
         if resistance_ohm is not None and math.isfinite(resistance_ohm) and resistance_ohm > 0:
             self.resistance_ohm = float(resistance_ohm)
-        if self.ff is not None and position_mm is not None:
-            self.ff.inverse.observe(self.temperature_c, position_mm)
+        self._observed_mm = position_mm
 
     def p_max_w(self, dt_s: float) -> float:
         """Largest power: current limit, and no step beyond the temperature ceiling."""
@@ -214,11 +240,84 @@ class Controller:
             mode, self._pending_mode = self._pending_mode, None
             gains, self._pending_gains = self._pending_gains, None
             open_a, self._pending_open_a = self._pending_open_a, None
-        if gains is not None and self.pid is not None:
-            self.pid.set_gains(gains)
+        if gains is not None:
+            law, g = gains
+            (self.pid if law == "pid" else self.ffpid).set_gains(g)
         if open_a is not None:
             self._open_current_a = open_a
         return mode
+
+    def _plan(
+        self, t_s: float, dt: float, mode: str, setpoint: float, position_mm: float,
+        p_max: float, entering_ff: bool,
+    ) -> tuple[float, float]:  # fmt: skip
+        """The inverse model's part of a tick, in every mode (it tracks the reference's
+        direction and reversals, which the PID's per-branch integral uses); for ff and ffpid
+        also the feed-forward power. Returns (reference temperature °C, power W)."""
+        valid = math.isfinite(position_mm)
+        uses_ff = mode in ("ff", "ffpid")
+        if entering_ff:  # plan from the runtime's estimate, with no heat input yet
+            self.ff.sync(self.temperature_c)
+            if self.observer is not None:
+                self.observer.reset(self.temperature_c, self.ff.inverse.heating)
+        heat_w = 0.0
+        if mode == "ffpid" and self.observer is not None:
+            if not entering_ff:
+                self.observer.correct(dt, position_mm, self._saturation)
+            self.ff.t_ff_c = self.observer.temperature_c
+            heat_w = self.observer.disturbance_w
+        if self._observed_mm is not None:  # the paper's adaptation: the wire's state
+            t_wire = self.ff.t_ff_c if mode == "ffpid" else self.temperature_c
+            self.ff.inverse.observe(t_wire, self._observed_mm)
+        u_mm = 0.0  # FF+PID: the PID's shift of the setpoint fed to the inverse
+        if mode == "ffpid":
+            if entering_ff:
+                self.ffpid.reset()
+            elif valid:
+                lim = self.ffpid_limit_mm
+                u_mm = self.ffpid.update(dt, setpoint, position_mm, -lim, lim, 0.0,
+                                         self._saturation, hold_up=self._hold < 0,
+                                         hold_down=self._hold > 0)  # fmt: skip
+            else:
+                u_mm = self.ffpid.last_output_w
+        # the (shifted) setpoint moves the inverse along its branch; moving back beyond the
+        # deadband reverses the branch (the feed-forward then crosses the hysteresis gap)
+        heating_before = self.ff.inverse.heating
+        t_ref = self.ff.reference_temperature(setpoint - u_mm)
+        heating = self.ff.inverse.heating
+        if heating != heating_before and self.pid is not None:
+            # the PID law: the integral that holds the wire on one branch is wrong on the
+            # other; each direction of the setpoint's motion keeps its own
+            self.pid.branch_integrals[heating_before] = self.pid.integral_w
+            self.pid.integral_w = self.pid.branch_integrals[heating]
+        if not uses_ff:
+            return t_ref, 0.0
+        t_follow = self.ff.follow_temperature(t_s, self.reference, -u_mm)
+        self._hold = 0
+        if mode == "ffpid":
+            new_branch = heating != heating_before or entering_ff
+            t_follow = self._hold_branch(t_follow, heating, new_branch)
+        t_next = min(t_follow, self.ff.cooling_bound(t_s, self.reference, -u_mm))
+        t_next = min(max(t_next, self.ambient_c), self.t_ceiling_c)
+        return t_ref, self.ff.power(t_next, p_max, heat_w)
+
+    def _hold_branch(self, t_follow_c: float, heating: bool, new_branch: bool) -> float:
+        """FF+PID: the PID may slow the wire down along its branch but not pull it back more
+        than ``HOLD_MARGIN_K`` below the hottest (heating) / above the coldest (cooling)
+        temperature it reached on the branch: going back further crosses the hysteresis gap
+        (the wire would not move until it came out on the other branch, then overshoot the
+        other way: a limit cycle). Sets ``_hold`` (the PID then stops integrating that way)."""
+        t_now = self.ff.t_ff_c
+        if new_branch:
+            self._ext_c = t_now
+        self._ext_c = max(self._ext_c, t_now) if heating else min(self._ext_c, t_now)
+        if heating and t_follow_c < self._ext_c - self.HOLD_MARGIN_K:
+            self._hold = 1
+            return self._ext_c - self.HOLD_MARGIN_K
+        if not heating and t_follow_c > self._ext_c + self.HOLD_MARGIN_K:
+            self._hold = -1
+            return self._ext_c + self.HOLD_MARGIN_K
+        return t_follow_c
 
     def update(self, t_s: float, position_mm: float) -> ControlStep:
         dt = self._dt if self._last_t is None else max(t_s - self._last_t, 1e-4)
@@ -228,7 +327,7 @@ class Controller:
         switching = not self._entered or (new_mode is not None and new_mode != self._mode)
         if new_mode is not None:
             self._mode = new_mode
-        first_tick = not self._entered
+        first = not self._entered
         self._entered = True
         mode = self._mode
         setpoint = done = None
@@ -236,42 +335,23 @@ class Controller:
         if self.reference is not None:
             setpoint, done = self.reference.update(t_s)
             cycle = self.reference.cycle(t_s)
+        valid = math.isfinite(position_mm)
         p_max = self.p_max_w(dt)
         p_last = self.last_current_a**2 * self.resistance_ohm
         uses_ff = mode in ("ff", "ffpid")
         t_ref = None
-        t_next = self.ambient_c
         p_ff = 0.0
         if self.ff is not None and setpoint is not None:
-            # the inverse tracks the reference (direction, reversals) in every mode
-            heating_before = self.ff.inverse.heating
-            t_ref = self.ff.reference_temperature(setpoint)
-            if self.ff.inverse.heating != heating_before and self.pid is not None:
-                # hysteresis: the integral that holds the wire on one branch is wrong on the
-                # other; each branch direction keeps its own
-                self._branch_integral[heating_before] = self.pid.integral_w
-                self.pid.integral_w = self._branch_integral[self.ff.inverse.heating]
-            if uses_ff:
-                if not self._ff_active:
-                    self.ff.sync(self.temperature_c)
-                t_next = self.ff.target_temperature(t_s, dt, self.reference)
-                p_ff = self.ff.power(dt, t_next, p_max)
+            entering_ff = uses_ff and (switching or not self._ff_active)
+            t_ref, p_ff = self._plan(t_s, dt, mode, setpoint, position_mm, p_max, entering_ff)
+            if entering_ff:
+                self._transfer_w = 0.0 if first else p_last - p_ff
         self._ff_active = uses_ff
         if switching:
             log.info("t %.2f s: mode %s", t_s, mode)
             self.mode_log.append((t_s, mode))
-            first = len(self.mode_log) == 1
-            if self.pid is not None:
-                self.pid.gain_scale = self.ffpid_gain_scale if mode == "ffpid" else 1.0
-            if mode == "pid" and math.isfinite(position_mm) and not first:
+            if mode == "pid" and valid and not first:
                 self.pid.track(setpoint, position_mm, min(p_last, p_max))
-            if mode == "ffpid" and math.isfinite(position_mm) and not first:
-                # the PID share that makes this tick's power equal the last command
-                a = math.exp(-dt * self.conductance / self.heat_capacity)
-                t_need = a * self.ff.t_ff_c + (1 - a) * (self.ambient_c + p_last / self.conductance)
-                self.pid.track(setpoint, position_mm, (t_need - t_next) * self.conductance)
-            if mode == "ff":
-                self._transfer_w = 0.0 if first else p_last - p_ff
             if mode == "open_loop":
                 self._open_current_a = self.last_current_a
         if mode == "open_loop":
@@ -283,31 +363,24 @@ class Controller:
             else:
                 current = self._open_current_a
             power = current**2 * self.resistance_ohm
-        elif mode == "ff":
-            self._transfer_w *= math.exp(-dt / self.transfer_s)
-            power = min(max(p_ff + self._transfer_w, 0.0), p_max)
-            current = self._current(power)
-            self.ff.advance(dt, power)  # T_ff follows what is really applied
         elif mode == "pid":
-            if switching and not first_tick:
+            if switching and not first:
                 power = min(self.pid.last_output_w, p_max)  # the tracked, bumpless output
-            elif math.isfinite(position_mm):
+            elif valid:
                 power = self.pid.update(dt, setpoint, position_mm, 0.0, p_max)
             else:  # invalid reading: hold the last command
                 power = min(self.last_power_w, p_max)
             current = self._current(power)
-        else:  # ffpid: the PID's power share moves the feed-forward's temperature target
-            if math.isfinite(position_mm) and not (switching and not first_tick):
-                p_pid = self.pid.update(dt, setpoint, position_mm, -p_max, p_max, 0.0,
-                                        self._freeze)  # fmt: skip
-            else:  # invalid reading, or the switching tick: the tracked (bumpless) share
-                p_pid = self.pid.last_output_w
-            # the PID share moves the target by the steady temperature change it stands for
-            t_target = t_next + p_pid / self.conductance
-            power = self.ff.power(dt, min(max(t_target, self.ambient_c), self.t_ceiling_c), p_max)
-            self._freeze = 1 if power >= p_max else (-1 if power <= 0.0 else 0)
+        else:  # ff, ffpid: the feed-forward's power plus the decaying transfer offset
+            power = min(max(p_ff + self._transfer_w, 0.0), p_max)
+            self._transfer_w *= math.exp(-dt / self.transfer_s)
             current = self._current(power)
-            self.ff.advance(dt, power)
+            if mode == "ffpid" and self.observer is not None:
+                self.observer.predict(dt, power)
+                self.ff.t_ff_c = self.observer.temperature_c
+            else:
+                self.ff.advance(dt, power)  # T_ff follows what is really applied
+        self._saturation = 1 if power >= p_max - 1e-9 else (-1 if power <= 0.0 else 0)
         self.last_current_a = current
         self.last_power_w = power
         return ControlStep(current, cycle, phase, setpoint, mode, bool(done), power, p_ff, t_ref)
@@ -318,13 +391,20 @@ class Controller:
         d: dict = {"mode": self.mode, **self.info}
         if self.pid is not None:
             d["gains"] = self.pid.gains.as_dict()
+        if self.ffpid is not None:
+            d["ffpid_gains"] = self.ffpid.gains.as_dict()
+            d["ffpid_limit_mm"] = self.ffpid_limit_mm
         if self.ff is not None:
             d["feedforward"] = {
-                "lead_s": self.ff.lead_s,
+                "lead_s": list(self.ff.lead_s),
+                "horizon_s": self.ff.horizon_s,
+                "preview_slack_s": self.ff.preview_slack_s,
                 "t_ceiling_c": self.ff.t_ceiling_c,
                 "adapt": self.ff.inverse.adapt,
                 "inverse": self.ff.inverse.state(),
             }
+        if self.observer is not None:
+            d["observer"] = self.observer.state()
         if self.stroke_mm is not None:
             d["reachable_mm"] = list(self.stroke_mm)
         d["t_ceiling_c"] = self.t_ceiling_c

@@ -2,14 +2,19 @@
 
 Identification (:func:`identify_loop_model`): the model is fitted to an identification cycle
 simulated with :func:`smabench.physics.plant.simulate_plant` for the configured wire and load —
-two slow ramps of the heating power (0 → the power that holds 100 °C → 0 over 30 s each way,
-then 10 s of passive cooling), slow enough that the loop is close to the quasi-static one the
-controller moves along — with **no plant effects switched on**, whatever the bench runs with: the
-controller's model never knows latent heat, sensor lag etc. The temperature axis is the one the
-runtime estimates online (the heat balance driven by the current, :mod:`smabench.physics.thermal`),
-the length axis the simulated sensor reading (with its noise). The identification could equally
-be run on the bench (a ``ramp`` session fed to :func:`fit_from_samples`); the simulated cycle is
-the default because it costs 0.2 s and needs no wire time.
+two slow ramps of the heating power (0 → the power that holds 100 °C → 0 over 240 s each way,
+then passive cooling), slow enough (≈ 0.3 K/s through the transformation) that the loop is the
+quasi-static one: a faster ramp bakes the wire's kinetic lag into the branches (with 30 s ramps
+the cooling branch came out 1.3 K colder, 0.5 mm at its steepest, than the wire at 1 K/s).
+The kinetic lag is identified separately (:func:`identify_kinetic_lag`): the delay of the
+temperature that maps a second, 8× faster cycle onto the quasi-static model, per branch
+(≈ 0.04 s heating, 0.42 s cooling on the mock's wire); the feed-forward leads by it. Both runs
+have **no plant effects switched on**, whatever the bench runs with: the controller's model
+never knows latent heat, sensor lag etc. The temperature axis is the one the runtime estimates
+online (the heat balance driven by the current, :mod:`smabench.physics.thermal`), the length
+axis the simulated sensor reading (with its noise). The identification could equally be run on
+the bench (``ramp`` sessions fed to :func:`fit_from_samples`); the simulated cycles are the
+default because they cost about a second and need no wire time.
 
 Inverse (:class:`InverseLoop`): position setpoint → temperature on the branch that the motion
 needs (the setpoint falling = the wire shortening = heating branch; rising = cooling branch).
@@ -23,7 +28,8 @@ points drifts apart from the model's when the wire lags the reference.
 Online adaptation, as in the paper:
 
 - at a reversal the reversal point is taken from the wire — its extreme on the branch just
-  left (the runtime's temperature estimate and the measured position at that sample) — not
+  left (the temperature the law plans with — the runtime's estimate, or FF+PID's observed
+  temperature — and the measured position at that sample) — not
   from the model, so the new branch starts where the wire really turned (the first common
   point of the new branch is updated);
 - the first measured values on each new branch (``refit_samples`` samples once the branch has
@@ -43,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from smabench.physics.identify import FitResult, fit_loop
+from smabench.physics.loop_models import SigmoidModel
 from smabench.physics.plant import simulate_plant
 from smabench.physics.thermal import current_for_steady_temperature, simulate_temperature
 from smabench.physics.wire import PAPER_WIRE, Wire
@@ -52,20 +59,41 @@ log = logging.getLogger(__name__)
 Point = tuple[float, float]  # (temperature °C, position mm)
 
 IDENT_HOT_C = 100.0
-IDENT_RAMP_S = 30.0
-IDENT_DT_S = 0.01
+IDENT_SLOW_RAMP_S = 240.0
+"""Ramp time, s, of the quasi-static identification cycle: slow enough (≈ 0.3 K/s through the
+transformation) that the kinetic lag of the wire shifts the branches by < 0.2 K."""
+IDENT_SLOW_DT_S = 0.05
+IDENT_FIT_SAMPLES = 4000  # samples of the slow cycle given to the fit (its cost grows ~ n²)
+IDENT_FAST_RAMP_S = 30.0
+"""Ramp time, s, of the second cycle, ≈ 8× faster: the branch shift against the quasi-static
+model gives each branch's kinetic lag."""
+IDENT_FAST_DT_S = 0.01
 
 
 def identification_profile(
-    wire: Wire = PAPER_WIRE, ambient_c: float = 22.0, dt_s: float = IDENT_DT_S
+    wire: Wire = PAPER_WIRE,
+    ambient_c: float = 22.0,
+    ramp_s: float = IDENT_SLOW_RAMP_S,
+    dt_s: float = IDENT_SLOW_DT_S,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Current profile of the identification cycle: two slow ramp cycles; (t_s, current_a)."""
+    """Current profile of an identification run: two ramp cycles, each 0 → the power that holds
+    100 °C → 0 over ``ramp_s`` s each way (linear in power), then passive cooling;
+    returns (t_s, current_a)."""
     i_hot = float(current_for_steady_temperature(IDENT_HOT_C, wire, ambient_c))
-    n = int(round(IDENT_RAMP_S / dt_s))
+    n = int(round(ramp_s / dt_s))
     up = np.sqrt(np.linspace(0.0, 1.0, n)) * i_hot  # linear in power: even heating rates
-    one = np.concatenate([up, np.full(n // 10, i_hot), up[::-1], np.zeros(n // 3)])
+    cool = int(round(max(10.0, ramp_s / 3.0) / dt_s))
+    one = np.concatenate([up, np.full(n // 10, i_hot), up[::-1], np.zeros(cool)])
     cur = np.concatenate([one, one])
     return np.arange(cur.size) * dt_s, cur
+
+
+def _second_cycle(load_kg, wire, ambient_c, seed, ramp_s, dt_s):
+    t, cur = identification_profile(wire, ambient_c, ramp_s, dt_s)
+    trace = simulate_plant(t, cur, load_kg=load_kg, wire=wire, ambient_c=ambient_c, seed=seed)
+    temp = simulate_temperature(t, cur, wire, ambient_c)
+    half = t.size // 2
+    return t[half:], temp[half:], trace.position_mm[half:]
 
 
 def identify_loop_model(
@@ -75,13 +103,45 @@ def identify_loop_model(
     ambient_c: float = 22.0,
     seed: int = 1,
 ) -> FitResult:
-    """Fit ``model`` (``sigmoid``, ``1`` or ``2``) to the simulated identification cycle of the
-    nominal plant (no effects) under ``load_kg``; the fit uses the second cycle (history-free)."""
-    t, cur = identification_profile(wire, ambient_c)
-    trace = simulate_plant(t, cur, load_kg=load_kg, wire=wire, ambient_c=ambient_c, seed=seed)
-    temp = simulate_temperature(t, cur, wire, ambient_c)
-    half = t.size // 2
-    return fit_from_samples(temp[half:], trace.position_mm[half:], model)
+    """Fit ``model`` (``sigmoid``, ``1`` or ``2``) to the simulated quasi-static identification
+    cycle of the nominal plant (no effects) under ``load_kg``; the fit uses the second cycle
+    (history-free)."""
+    _, temp, pos = _second_cycle(load_kg, wire, ambient_c, seed, IDENT_SLOW_RAMP_S,
+                                 IDENT_SLOW_DT_S)  # fmt: skip
+    every = max(1, temp.size // IDENT_FIT_SAMPLES)
+    return fit_from_samples(temp[::every], pos[::every], model)
+
+
+def identify_kinetic_lag(
+    fit: FitResult,
+    load_kg: float,
+    wire: Wire = PAPER_WIRE,
+    ambient_c: float = 22.0,
+    seed: int = 2,
+    max_lag_s: float = 2.0,
+) -> tuple[float, float]:
+    """Kinetic lag (s) of the heating and of the cooling branch: the delay of the temperature
+    that best maps the fast identification cycle onto the quasi-static model ``fit`` (least
+    squares over the samples where the wire moves). The wire's transformation lags its
+    temperature; the feed-forward leads the reference by these times."""
+    t, temp, pos = _second_cycle(load_kg, wire, ambient_c, seed, IDENT_FAST_RAMP_S,
+                                 IDENT_FAST_DT_S)  # fmt: skip
+    dt = float(t[1] - t[0])
+    heating = np.gradient(temp) > 0
+    moving = np.abs(np.gradient(pos)) > 1e-2 * dt * (pos.max() - pos.min())
+    lags = []
+    for branch in (True, False):
+        sel = moving & (heating == branch)
+        best = (0.0, math.inf)
+        for k in range(int(max_lag_s / dt) + 1):
+            lagged = np.concatenate([np.full(k, temp[0]), temp[: temp.size - k]])
+            model_y = fit.loop_model.evaluate(lagged, np.full(temp.size, branch))
+            cost = float(np.mean((model_y - pos)[sel] ** 2))
+            if cost < best[1]:
+                best = (k * dt, cost)
+        lags.append(best[0])
+    log.info("kinetic lag: heating %.3f s, cooling %.3f s", lags[0], lags[1])
+    return lags[0], lags[1]
 
 
 def fit_from_samples(temperature_c, position_mm, model: str = "sigmoid") -> FitResult:
@@ -91,7 +151,7 @@ def fit_from_samples(temperature_c, position_mm, model: str = "sigmoid") -> FitR
     return result
 
 
-def _common_points(model) -> tuple[Point, Point]:
+def common_points(model) -> tuple[Point, Point]:
     cp = model.common_points() if hasattr(model, "common_points") else model.cp
     return (cp.t1_c, cp.y1_mm), (cp.t2_c, cp.y2_mm)
 
@@ -126,7 +186,7 @@ class InverseLoop:
     scale: dict[bool, float] = field(default_factory=lambda: {True: 1.0, False: 1.0})
 
     def __post_init__(self) -> None:
-        self.low, self.high = _common_points(self.model)
+        self.low, self.high = common_points(self.model)
         self._tables: dict[tuple, _Table] = {}  # branch tables by key (shared with previews)
         self._ext_y: float | None = None
         self._ext_t = self.t_min_c
@@ -164,6 +224,28 @@ class InverseLoop:
             target = self.stack[-2] if len(self.stack) >= 2 else self.low
         return start, target
 
+    def _branch_array(self, ts: np.ndarray, start: Point, target: Point, s: float) -> np.ndarray:
+        """:meth:`_branch_y` over an array of temperatures (vectorised for our sigmoid model,
+        whose branch rule it repeats; point by point for the paper's models)."""
+        m = self.model
+        if not isinstance(m, SigmoidModel):
+            return np.array([self._branch_y(float(t), start, target, s) for t in ts])
+        br = m.heating_branch if self.heating else m.cooling_branch
+        xs, xe = m.fraction_at(*start), m.fraction_at(*target)
+        gs, ge = br.xi_scalar(start[0]), br.xi_scalar(target[0])
+        g = br.xi(ts)
+        xi = np.full_like(ts, xs) if abs(ge - gs) < 1e-12 else xs + (xe - xs) * (g - gs) / (ge - gs)
+        xi = np.clip(xi, min(xs, xe), max(xs, xe))
+        d = ts - m.t_ref_c
+        ym = m.ym_mm + m.km_mm_per_k * d
+        y = ym + xi * (m.ya_mm + m.ka_mm_per_k * d - ym)
+        if s != 1.0 and target[0] != start[0]:
+            u = (ts - start[0]) / (target[0] - start[0])
+            chord = start[1] + u * (target[1] - start[1])
+            inside = (u >= 0.0) & (u <= 1.0)
+            y = np.where(inside, chord + s * (y - chord), y)
+        return y
+
     def _branch_y(self, t: float, start: Point, target: Point, s: float) -> float:
         y = float(self.model.branch(t, self.heating, start, target))
         if s != 1.0 and target[0] != start[0]:
@@ -187,12 +269,15 @@ class InverseLoop:
         if cached is not None:
             self._table = cached
             return cached
-        t0 = start[0]
+        # the table spans only temperatures the wire can have (a major branch's common point
+        # may lie far outside, where the model's tails are flat)
+        t0 = max(start[0], self.t_min_c) if self.heating else min(start[0], self.t_max_c)
         if (t_end - t0) * (1 if self.heating else -1) <= 1e-6:
             t_end = t0 + (1e-3 if self.heating else -1e-3)
         ts = np.linspace(t0, t_end, self.table_points)
-        ys = np.array([self._branch_y(float(t), start, target, self._branch_scale) for t in ts])
-        ys[0] = start[1]
+        ys = self._branch_array(ts, start, target, self._branch_scale)
+        if t0 == start[0]:
+            ys[0] = start[1]
         k = np.arange(ys.size) * 1e-9
         # monotone envelope: heating, position falls with T; cooling (T decreasing), it rises
         ys = np.minimum.accumulate(ys) - k if self.heating else np.maximum.accumulate(ys) + k
@@ -221,6 +306,17 @@ class InverseLoop:
                 k = int(np.searchsorted(tab.y, y_start + tol))
                 return float(tab.t[min(k, tab.t.size - 1)])
         return float(np.interp(y, tab.y, tab.t))
+
+    def branch_position(self, t_c: float) -> float:
+        """Model position (mm) at ``t_c`` on the active branch (the one the inverse uses)."""
+        tab = self._get_table()
+        return float(np.interp(t_c, tab.t[::-1], tab.y[::-1]))
+
+    def slope_mm_per_k(self, t_c: float, half_width_k: float = 0.5) -> float:
+        """dy/dT (mm/K, ≤ 0: the wire shortens as it heats) of the active branch at ``t_c``."""
+        y_hi = self.branch_position(t_c + half_width_k)
+        y_lo = self.branch_position(t_c - half_width_k)
+        return (y_hi - y_lo) / (2.0 * half_width_k)
 
     # ----------------------------------------------------------------- online
     def observe(self, temperature_c: float, position_mm: float) -> None:
@@ -283,25 +379,29 @@ class InverseLoop:
         ):
             del self.stack[-2:]
 
-    def temperature(self, y_sp: float, commit: bool = True) -> float:
+    def temperature(
+        self, y_sp: float, commit: bool = True, deadband_mm: float | None = None
+    ) -> float:
         """Temperature (°C) for position setpoint ``y_sp`` (mm). With ``commit`` the direction
         and reversal memory advance (once per tick); without, a look-ahead on the current
-        branch that leaves the state alone."""
+        branch that leaves the state alone. ``deadband_mm``: this tick's reversal deadband
+        (default ``self.deadband_mm``)."""
         y = float(y_sp)
         if not commit:
             return self._invert(y)
+        db = self.deadband_mm if deadband_mm is None else deadband_mm
         if self._ext_y is None:
             self._ext_y = y
         elif self.heating:
             if y <= self._ext_y:
                 self._ext_y = y
-            elif y - self._ext_y > self.deadband_mm:
+            elif y - self._ext_y > db:
                 self._reverse(self._ext_y)
                 self._ext_y = y
         else:
             if y >= self._ext_y:
                 self._ext_y = y
-            elif self._ext_y - y > self.deadband_mm:
+            elif self._ext_y - y > db:
                 self._reverse(self._ext_y)
                 self._ext_y = y
         self._wipe(y)

@@ -1,0 +1,180 @@
+"""Temperature and heat-input observer: the wire temperature FF+PID plans from, corrected by
+the measured position through the loop model.
+
+The heat balance of the applied power predicts the wire temperature (the runtime's estimate
+does only that). Whatever it does not model — the latent heat of the transformation, a wrong
+convection coefficient or resistance, a drifting room — shows up as a position that differs
+from what the loop model predicts. The observer runs
+
+    C·dT/dt = −hA·(T − T_room) + P + d
+
+with an unknown heat input ``d`` (W) and, each tick,
+
+- predicts the position ``ŷ``: the loop model at its temperature, on its own branch (direction
+  of its temperature with a ``deadband_k`` hysteresis, the first common point moved to the last
+  reversal, as the wire does), through a first-order lag of each branch's kinetic lag (the
+  martensite fraction lags its equilibrium; :func:`~smabench.control.model.identify_kinetic_lag`);
+- turns the position error into a temperature error through the model's slope
+  ``s = dy/dT``: ``e = (y − ŷ)·s/(s² + s0²)`` (K). Where the branch is steep that is the
+  temperature offset the position stands for; where it is flat (inside the hysteresis gap, at
+  the ends of the stroke) it goes to zero: there the position says nothing about the
+  temperature. ``s0`` bounds the gain where the slope is small;
+- corrects ``T += l_T·dt·e`` and ``d += C·ω_d²·dt·e``, with per-branch gains: the wire answers
+  a temperature change after its kinetic lag, about ten times longer on cooling, so the cooling
+  branch gets the lower gains.
+
+Three rules keep it from explaining model errors as heat:
+
+- a wire *ahead* of the model on its branch (further along than predicted) is only used while
+  it moves along the branch: a wire that stopped sits in the hysteresis gap, where a position
+  error cannot be resolved without a reversal;
+- ``d`` relaxes to 0 within ``still_decay_s`` while the wire does not move (it cannot be
+  observed then, and an unobservable heat input must not steer the temperature estimate);
+- ``d`` does not integrate further in a direction the command cannot answer (power at its
+  maximum or at 0 W).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass
+
+from smabench.control.model import Point, common_points
+from smabench.physics.thermal import thermal_constants
+from smabench.physics.wire import Wire
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ObserverSettings:
+    """Gains and guards of :class:`TemperatureObserver` (units in names; pairs are
+    (heating branch, cooling branch))."""
+
+    temperature_gain_per_s: tuple[float, float] = (40.0, 12.0)
+    disturbance_bandwidth_rad_s: tuple[float, float] = (6.0, 4.0)
+    slope_floor_mm_per_k: float = 0.1
+    deadband_k: float = 1.0
+    moving_mm_s: float = 0.05
+    velocity_filter_s: float = 0.1
+    still_decay_s: float = 0.1
+    decay_s: float = 3.0
+    max_disturbance_w: float = 1.0
+    ahead_while_moving: bool = True  # use "ahead" errors while the wire moves along the branch
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+class TemperatureObserver:
+    """See module docstring. Temperatures °C, positions mm, powers W, times s."""
+
+    def __init__(
+        self,
+        model,
+        wire: Wire,
+        lags_s: tuple[float, float],
+        settings: ObserverSettings | None = None,
+        ambient_c: float = 22.0,
+    ) -> None:
+        self.model = model
+        self.lags_s = lags_s
+        self.s = settings or ObserverSettings()
+        self.heat_capacity, self.conductance = thermal_constants(wire)
+        self.tau_s = self.heat_capacity / self.conductance
+        self.ambient_c = ambient_c
+        self.low, self.high = common_points(model)
+        self.temperature_c = ambient_c
+        self.disturbance_w = 0.0
+        self.heating = True
+        self.start: Point | None = None  # reversal point the branch leaves (None: major)
+        self._ext_c = ambient_c
+        self.predicted_mm = math.nan
+        self._y_lag: float | None = None
+        self._y_f: float | None = None
+        self.velocity_mm_s = 0.0
+
+    def reset(self, temperature_c: float, heating: bool = True) -> None:
+        """Start from ``temperature_c`` (the runtime's estimate) with no heat input."""
+        self.temperature_c = self._ext_c = float(temperature_c)
+        self.disturbance_w = 0.0
+        self.heating = heating
+        self.start = None
+        self._y_lag = self._y_f = None
+        self.velocity_mm_s = 0.0
+
+    # ------------------------------------------------------------------ model
+    def _branch(self, t_c: float) -> float:
+        if self.heating:
+            start, target = (self.start or self.low), self.high
+        else:
+            start, target = (self.start or self.high), self.low
+        return float(self.model.branch(t_c, self.heating, start, target))
+
+    def _track_direction(self) -> None:
+        t = self.temperature_c
+        if (t >= self._ext_c) if self.heating else (t <= self._ext_c):
+            self._ext_c = t
+        elif abs(t - self._ext_c) > self.s.deadband_k:
+            t_rev = self._ext_c
+            y_rev = self._branch(t_rev)
+            self.heating = not self.heating
+            self.start = (t_rev, y_rev) if self.low[0] < t_rev < self.high[0] else None
+            self._ext_c = t
+
+    # ------------------------------------------------------------------ per tick
+    def predict(self, dt_s: float, power_w: float) -> None:
+        """Advance one step with ``power_w`` (W) applied plus the estimated heat input."""
+        a = math.exp(-dt_s / self.tau_s)
+        t_inf = self.ambient_c + (power_w + self.disturbance_w) / self.conductance
+        self.temperature_c = t_inf + (self.temperature_c - t_inf) * a
+        self._track_direction()
+        y_eq = self._branch(self.temperature_c)
+        tau = self.lags_s[0] if self.heating else self.lags_s[1]
+        b = math.exp(-dt_s / tau) if tau > 0 else 0.0
+        self._y_lag = y_eq if self._y_lag is None else y_eq + (self._y_lag - y_eq) * b
+
+    def correct(self, dt_s: float, position_mm: float, saturated: int = 0) -> None:
+        """Correct temperature and heat input from the measured ``position_mm`` (mm).
+        ``saturated``: +1 / −1 when the last command was at its maximum / at 0 W."""
+        if self._y_lag is None:
+            self._y_lag = self._branch(self.temperature_c)
+        y_hat = self._y_lag
+        self.predicted_mm = y_hat
+        if not math.isfinite(position_mm):
+            return
+        if self._y_f is None:
+            self._y_f = position_mm
+        a = dt_s / (self.s.velocity_filter_s + dt_s)
+        y_new = self._y_f + a * (position_mm - self._y_f)
+        self.velocity_mm_s = (y_new - self._y_f) / dt_s
+        self._y_f = y_new
+        still = abs(self.velocity_mm_s) < self.s.moving_mm_s
+        decay_s = self.s.still_decay_s if still else self.s.decay_s
+        self.disturbance_w *= math.exp(-dt_s / decay_s)
+        t = self.temperature_c
+        slope = self._branch(t + 0.5) - self._branch(t - 0.5)  # mm/K, over 1 K
+        s0 = self.s.slope_floor_mm_per_k
+        err_k = (position_mm - y_hat) * slope / (slope * slope + s0 * s0)
+        direction = 1.0 if self.heating else -1.0  # +1: the branch moves with heat
+        moving_along = -self.velocity_mm_s * direction > self.s.moving_mm_s
+        if err_k * direction > 0 and not (moving_along and self.s.ahead_while_moving):
+            return  # ahead of the model and stopped: in the gap, nothing to learn
+        branch = 0 if self.heating else 1
+        step_k = self.s.temperature_gain_per_s[branch] * dt_s * err_k
+        self.temperature_c += step_k
+        self._y_lag += slope * step_k  # the offset held in the past as well
+        step_w = self.heat_capacity * self.s.disturbance_bandwidth_rad_s[branch] ** 2 * dt_s * err_k
+        if (saturated > 0 and step_w < 0) or (saturated < 0 and step_w > 0):
+            step_w = 0.0  # the command cannot answer: do not wind the heat input up
+        limit = self.s.max_disturbance_w
+        self.disturbance_w = min(max(self.disturbance_w + step_w, -limit), limit)
+
+    def state(self) -> dict:
+        return {
+            "temperature_c": self.temperature_c,
+            "disturbance_w": self.disturbance_w,
+            "heating": self.heating,
+            "settings": self.s.as_dict(),
+        }

@@ -228,10 +228,11 @@ class MainWindow(QtWidgets.QMainWindow):
         form.addRow(row)
         from smabench.control import gains_for_load
 
-        g = gains_for_load(2.0)
+        g = gains_for_load(self.load_kg.value())
         self.kp = _spin(0, 100, g.kp, 0.01, 3)
         self.ki = _spin(0, 100, g.ki, 0.01, 3)
         self.kd = _spin(0, 100, g.kd, 0.01, 3)
+        self.load_kg.valueChanged.connect(self._show_load_gains)
         form.addRow("Kp (W/mm)", self.kp)
         form.addRow("Ki (W/(mm·s))", self.ki)
         form.addRow("Kd (W·s/mm)", self.kd)
@@ -418,6 +419,15 @@ class MainWindow(QtWidgets.QMainWindow):
     def set_mode(self, mode: str) -> None:
         if self.link is not None and self.link.alive:
             self.link.send(f"mode {mode}")
+
+    def _show_load_gains(self, load_kg: float) -> None:
+        """Show the PID gains of the per-load table for this load (until gains are applied)."""
+        if self.custom_gains is None:
+            from smabench.control import gains_for_load
+
+            g = gains_for_load(load_kg)
+            for spin, v in ((self.kp, g.kp), (self.ki, g.ki), (self.kd, g.kd)):
+                spin.setValue(v)
 
     def apply_gains(self) -> None:
         """Use these gains from now on (live when running; for the next session anyway)."""

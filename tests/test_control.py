@@ -1,5 +1,6 @@
-"""Controllers: PID anti-windup, FF inverse round trip, bumpless switching, refused setpoints,
-the runtime's mode interface, and a smoke run of ``smabench bench control`` on the mock."""
+"""Controllers: PID anti-windup, FF inverse round trip, kinetic lags, the temperature observer,
+tracking targets in the offline loop, bumpless switching, refused setpoints, per-load gains, the
+runtime's mode interface, and a smoke run of ``smabench bench control`` on the mock."""
 
 from __future__ import annotations
 
@@ -13,11 +14,14 @@ from smabench.bench.protocols import ProtocolSettings
 from smabench.bench.runtime import BenchRuntime
 from smabench.control import ControllerSettings, PIDGains, build_controller, parse_switch
 from smabench.control.controller import MODES
-from smabench.control.factory import loop_model_for
+from smabench.control.factory import kinetic_lag_for, loop_model_for
 from smabench.control.model import InverseLoop
-from smabench.control.pid import PID
+from smabench.control.pid import PID, gains_for_load
 from smabench.control.sim import run_closed_loop
+from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
+
+LATENT = Effects(latent_heat=24000)
 
 
 def make(mode="ffpid", kind="sine", period=20.0, load=2.0, **kw):
@@ -55,6 +59,19 @@ def test_integrator_windup_in_closed_loop_with_an_unreachable_hold():
     assert abs(c.pid.integral_w) <= 0.6**2 * PAPER_WIRE.resistance_mean_ohm + 1e-9
 
 
+def test_ffpid_integrator_does_not_wind_up_while_the_current_is_saturated():
+    """FF+PID's PID (its output shifts the setpoint in mm) under the same unreachable hold:
+    it stops integrating while the command sits at its maximum, and once the reachable
+    setpoint comes it is near the others' error within a few seconds."""
+    c = make("ffpid", kind="step", period=60.0)
+    c.current_limit_a = 0.6
+    shifts = []
+    tr = run_closed_loop(c, 2.0, 38.0, on_tick=lambda k, t: shifts.append(c.ffpid.integral_w))
+    hot = (tr.t_s > 9.0) & (tr.t_s < 38.0)
+    assert np.all(tr.current_a[hot] <= 0.6 + 1e-9)
+    assert np.max(np.abs(np.asarray(shifts)[: tr.t_s.size][hot])) < 0.1  # mm, limit is 1 mm
+
+
 def test_derivative_acts_on_the_measurement_not_on_setpoint_steps():
     pid = PID(PIDGains(0.0, 0.0, 1.0, 0.1))
     pid.update(0.01, 1.0, 1.0, 0.0, 10.0)
@@ -86,21 +103,56 @@ def test_ff_power_inverts_the_heat_balance_and_never_goes_negative():
     ff = c.ff
     ff.sync(60.0)
     t_next = 61.0
-    p = ff.power(0.02, t_next, 5.0)
-    ff.advance(0.02, p)
+    p = ff.power(t_next, 5.0)
+    ff.advance(ff.horizon_s, p)  # held over the horizon, the power lands on the target
     assert ff.t_ff_c == pytest.approx(t_next, abs=1e-9)
+    ff.sync(60.0)
+    p_sink = ff.power(t_next, 5.0, disturbance_w=-0.1)  # a heat sink needs that much more
+    assert p_sink == pytest.approx(p + 0.1, abs=1e-12)
     ff.sync(90.0)
-    assert ff.power(0.02, 40.0, 5.0) == 0.0  # faster than natural cooling: passive, not < 0
+    assert ff.power(40.0, 5.0) == 0.0  # faster than natural cooling: passive, not < 0
 
 
-def test_tracking_ffpid_beats_pid_on_a_sine_in_simulation():
-    rms = {}
-    for mode in ("pid", "ffpid"):
-        c = make(mode)
-        tr = run_closed_loop(c, 2.0, 60.0, dt_s=0.02)
-        m = tr.t_s >= 8.0
-        rms[mode] = float(np.sqrt(np.mean((tr.position_mm[m] - tr.setpoint_mm[m]) ** 2)))
-    assert rms["ffpid"] <= 0.75 * rms["pid"], rms
+def _rms_after_lead_in(c, load, effects=None):
+    tr = run_closed_loop(c, load, c.reference.duration_s, effects=effects)
+    m = tr.t_s >= c.reference.s.lead_in_s
+    return float(np.sqrt(np.mean((tr.position_mm[m] - tr.setpoint_mm[m]) ** 2)))
+
+
+@pytest.mark.parametrize("effects", [None, LATENT], ids=["nominal", "latent-heat"])
+def test_ffpid_halves_the_pid_error_on_a_slow_sine_in_the_offline_loop(effects):
+    """The issue's target on the 20 s sine, also with latent heat in the plant (which the
+    controllers' model does not know); both laws with their per-load gains."""
+    rms = {mode: _rms_after_lead_in(make(mode), 2.0, effects) for mode in ("pid", "ffpid")}
+    assert rms["ffpid"] <= 0.5 * rms["pid"], rms
+
+
+def test_kinetic_lag_is_identified_per_branch():
+    heating_s, cooling_s = kinetic_lag_for(2.0, PAPER_WIRE, "sigmoid")
+    # the plant's martensite fraction lags with 0.05 s (heating) and 0.5 s (cooling)
+    assert 0.02 <= heating_s <= 0.08 and 0.3 <= cooling_s <= 0.6
+
+
+def test_observer_follows_the_wire_temperature_that_latent_heat_moves():
+    """With latent heat in the plant the heat balance alone is off by several kelvin; the
+    observer, fed the position through the loop model, follows the real temperature."""
+    c = make("ffpid")
+    seen = []
+    tr = run_closed_loop(c, 2.0, 40.0, effects=LATENT,
+                         on_tick=lambda k, t: seen.append(c.observer.temperature_c))  # fmt: skip
+    m = tr.t_s > 10.0
+    obs = np.asarray(seen[: tr.t_s.size])[m]
+    err_obs = np.sqrt(np.mean((obs - tr.temperature_c[m]) ** 2))
+    err_heat_balance = np.sqrt(np.mean((tr.estimate_c[m] - tr.temperature_c[m]) ** 2))
+    assert err_heat_balance > 3.0, err_heat_balance
+    assert err_obs < 0.25 * err_heat_balance, (err_obs, err_heat_balance)
+
+
+def test_observer_estimates_no_heat_input_on_the_nominal_plant():
+    c = make("ffpid")
+    heat = []
+    run_closed_loop(c, 2.0, 40.0, on_tick=lambda k, t: heat.append(c.observer.disturbance_w))
+    assert np.mean(np.abs(heat[800:])) < 0.02  # W; the latent-heat sink peaks near 0.1 W
 
 
 def test_adaptation_moves_the_first_common_point_to_the_wire_reversal():
@@ -115,7 +167,7 @@ def test_adaptation_moves_the_first_common_point_to_the_wire_reversal():
 # --------------------------------------------------------------------------- switching
 def test_switching_modes_mid_run_leaves_no_current_jump():
     c = make("pid")
-    plan = {700: "ff", 1000: "ffpid", 1400: "open_loop", 1600: "pid", 2000: "ffpid"}
+    plan = {700: "ff", 1000: "ffpid", 1400: "open_loop", 1450: "pid", 2000: "ffpid"}
     switch_ticks = []
 
     def on_tick(k, t):
@@ -206,6 +258,21 @@ def test_gains_are_stored_with_the_session_description():
     assert d["gains"]["kp"] > 0 and d["load_kg"] == 2.0
     assert d["reference"]["kind"] == "sine" and "reachable_mm" in d
     assert d["model"]["identified_from"].startswith("simulate_plant")
+    assert set(d["model"]["kinetic_lag_s"]) == {"heating", "cooling"}
+    assert d["observer"]["settings"]["slope_floor_mm_per_k"] > 0
+
+
+def test_gains_are_per_load_and_go_into_the_session():
+    for load in (1.0, 2.0, 4.0):
+        d = make("pid", load=load).describe()
+        assert d["gains"] == gains_for_load(load).as_dict()
+        assert d["ffpid_gains"] == gains_for_load(load, law="ffpid").as_dict()
+        assert d["gains_source"] == f"per-load table ({load:g} kg)"
+    tables = {load: gains_for_load(load).as_dict() for load in (1.0, 2.0, 4.0)}
+    assert len({tuple(g.values()) for g in tables.values()}) > 1  # not one set for all
+    mid = gains_for_load(3.0)  # interpolated between the 2 and 4 kg rows
+    lo, hi = sorted((gains_for_load(2.0).kp, gains_for_load(4.0).kp))
+    assert lo <= mid.kp <= hi
 
 
 def test_ceiling_limits_the_temperature():

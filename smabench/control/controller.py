@@ -263,7 +263,7 @@ class Controller:
         heat_w = 0.0
         if mode == "ffpid" and self.observer is not None:
             if not entering_ff:
-                self.observer.correct(dt, position_mm, self._saturation)
+                self.observer.correct(dt, position_mm, self._saturation, self.temperature_c)
             self.ff.t_ff_c = self.observer.temperature_c
             heat_w = self.observer.disturbance_w
         if self._observed_mm is not None:  # the paper's adaptation: the wire's state

@@ -23,6 +23,17 @@ with an unknown heat input ``d`` (W) and, each tick,
   a temperature change after its kinetic lag, about ten times longer on cooling, so the cooling
   branch gets the lower gains.
 
+A gate keeps it out of the way when the model is right. Corrections are scaled by a gate
+(0 … 1) that opens as the RMS error (over ``gate_tau_s``) of the *open-loop* model — the loop
+model at the heat balance's own temperature, the runtime's estimate — passes ``gate_mm`` and is
+fully open at twice that. On the nominal plant that error stays within the model's accuracy
+(≈ 0.05–0.1 mm RMS on the sines) and the observer, whose corrections of a right model only
+add noise that the hysteresis turns into limit cycles at holds, stays shut: FF+PID is then the
+feed-forward with its PID. An effect the heat balance does not know (latent heat moves the
+wire's temperature by up to λ ≈ 29 K over a transformation) drives that error to 0.4–0.9 mm and
+the observer takes over. The gate measures the open-loop model, not the observer's own
+prediction, so it does not close again as soon as the observer has done its job.
+
 Three rules keep it from explaining model errors as heat:
 
 - a wire *ahead* of the model on its branch (further along than predicted) is only used while
@@ -52,8 +63,8 @@ class ObserverSettings:
     """Gains and guards of :class:`TemperatureObserver` (units in names; pairs are
     (heating branch, cooling branch))."""
 
-    temperature_gain_per_s: tuple[float, float] = (40.0, 12.0)
-    disturbance_bandwidth_rad_s: tuple[float, float] = (6.0, 4.0)
+    temperature_gain_per_s: tuple[float, float] = (80.0, 24.0)
+    disturbance_bandwidth_rad_s: tuple[float, float] = (10.0, 6.7)
     slope_floor_mm_per_k: float = 0.1
     deadband_k: float = 1.0
     moving_mm_s: float = 0.05
@@ -62,6 +73,8 @@ class ObserverSettings:
     decay_s: float = 3.0
     max_disturbance_w: float = 1.0
     ahead_while_moving: bool = True  # use "ahead" errors while the wire moves along the branch
+    gate_mm: float = 0.15  # corrections fade in as the open-loop RMS error passes 1 … 2 × this
+    gate_tau_s: float = 3.0  # time constant of that RMS
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -94,6 +107,9 @@ class TemperatureObserver:
         self._y_lag: float | None = None
         self._y_f: float | None = None
         self.velocity_mm_s = 0.0
+        self.error_ms_mm2 = 0.0  # mean square error of the open-loop model, mm²
+        self.gate = 0.0 if self.s.gate_mm > 0 else 1.0
+        self._y_open: float | None = None
 
     def reset(self, temperature_c: float, heating: bool = True) -> None:
         """Start from ``temperature_c`` (the runtime's estimate) with no heat input."""
@@ -101,8 +117,10 @@ class TemperatureObserver:
         self.disturbance_w = 0.0
         self.heating = heating
         self.start = None
-        self._y_lag = self._y_f = None
+        self._y_lag = self._y_f = self._y_open = None
         self.velocity_mm_s = 0.0
+        self.error_ms_mm2 = 0.0
+        self.gate = 0.0 if self.s.gate_mm > 0 else 1.0
 
     # ------------------------------------------------------------------ model
     def _branch(self, t_c: float) -> float:
@@ -135,9 +153,12 @@ class TemperatureObserver:
         b = math.exp(-dt_s / tau) if tau > 0 else 0.0
         self._y_lag = y_eq if self._y_lag is None else y_eq + (self._y_lag - y_eq) * b
 
-    def correct(self, dt_s: float, position_mm: float, saturated: int = 0) -> None:
+    def correct(self, dt_s: float, position_mm: float, saturated: int = 0,
+                open_loop_c: float | None = None) -> None:  # fmt: skip
         """Correct temperature and heat input from the measured ``position_mm`` (mm).
-        ``saturated``: +1 / −1 when the last command was at its maximum / at 0 W."""
+        ``saturated``: +1 / −1 when the last command was at its maximum / at 0 W.
+        ``open_loop_c``: the heat balance's own temperature (the runtime's estimate), °C; the
+        loop model at it gives the open-loop error that opens the gate."""
         if self._y_lag is None:
             self._y_lag = self._branch(self.temperature_c)
         y_hat = self._y_lag
@@ -156,7 +177,10 @@ class TemperatureObserver:
         t = self.temperature_c
         slope = self._branch(t + 0.5) - self._branch(t - 0.5)  # mm/K, over 1 K
         s0 = self.s.slope_floor_mm_per_k
-        err_k = (position_mm - y_hat) * slope / (slope * slope + s0 * s0)
+        if open_loop_c is not None:
+            self._update_gate(dt_s, position_mm, open_loop_c)
+        err_mm = (position_mm - y_hat) * self.gate
+        err_k = err_mm * slope / (slope * slope + s0 * s0)
         direction = 1.0 if self.heating else -1.0  # +1: the branch moves with heat
         moving_along = -self.velocity_mm_s * direction > self.s.moving_mm_s
         if err_k * direction > 0 and not (moving_along and self.s.ahead_while_moving):
@@ -171,10 +195,25 @@ class TemperatureObserver:
         limit = self.s.max_disturbance_w
         self.disturbance_w = min(max(self.disturbance_w + step_w, -limit), limit)
 
+    def _update_gate(self, dt_s: float, position_mm: float, open_loop_c: float) -> None:
+        """The gate (0 … 1) from the RMS error (``gate_tau_s``) of the open-loop model: the loop
+        model, kinetic lag included, at the heat balance's own temperature."""
+        y_eq = self._branch(open_loop_c)
+        tau = self.lags_s[0] if self.heating else self.lags_s[1]
+        b = math.exp(-dt_s / tau) if tau > 0 else 0.0
+        self._y_open = y_eq if self._y_open is None else y_eq + (self._y_open - y_eq) * b
+        e_open = position_mm - self._y_open
+        w = dt_s / (self.s.gate_tau_s + dt_s)
+        self.error_ms_mm2 += w * (e_open * e_open - self.error_ms_mm2)
+        if self.s.gate_mm > 0:
+            rms = math.sqrt(self.error_ms_mm2)
+            self.gate = min(max(rms / self.s.gate_mm - 1.0, 0.0), 1.0)
+
     def state(self) -> dict:
         return {
             "temperature_c": self.temperature_c,
             "disturbance_w": self.disturbance_w,
             "heating": self.heating,
+            "gate": self.gate,
             "settings": self.s.as_dict(),
         }

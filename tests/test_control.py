@@ -155,6 +155,18 @@ def test_observer_estimates_no_heat_input_on_the_nominal_plant():
     assert np.mean(np.abs(heat[800:])) < 0.02  # W; the latent-heat sink peaks near 0.1 W
 
 
+def test_observer_gate_stays_shut_on_the_nominal_plant_and_opens_with_latent_heat():
+    """The observer corrects only when the open-loop model (loop model at the heat balance's
+    temperature) is measurably wrong: not on the plant the model was identified on."""
+    for effects, lo, hi in ((None, 0.0, 0.05), (LATENT, 0.9, 1.0)):
+        c = make("ffpid")
+        gate = []
+        run_closed_loop(c, 2.0, 40.0, effects=effects,
+                        on_tick=lambda k, t, c=c, g=gate: g.append(c.observer.gate))  # fmt: skip
+        mean = float(np.mean(gate[800:]))  # after the lead-in
+        assert lo <= mean <= hi, (effects, mean)
+
+
 def test_adaptation_moves_the_first_common_point_to_the_wire_reversal():
     c = make("ffpid")
     run_closed_loop(c, 2.0, 60.0, dt_s=0.02)

@@ -23,7 +23,12 @@ Laws, all computed in heating power P (W) and sent as ``I = sqrt(P/R)``:
   back beyond the inverse's reversal deadband reverses the branch, so the PID can undo an
   overshoot by a trip across the gap; within a branch it may slow the wire but not pull it back
   more than ``HOLD_MARGIN_K`` below the hottest (heating) / above the coldest (cooling)
-  temperature it reached there. And a :class:`~smabench.control.observer.TemperatureObserver`
+  temperature it reached there. The PID has two gain sets: the tracking gains while the
+  setpoint moves, and slow, integral-only hold gains while it stands still (steps, staircases,
+  the lead-in): there the feed-forward lands close, and correcting an overshoot means a trip
+  across the hysteresis gap that overshoots the other way, so the feedback only trims a steady
+  offset. The integral takes the proportional term's change at a gain switch (no step in the
+  shift). And a :class:`~smabench.control.observer.TemperatureObserver`
   corrects the temperature the feed-forward plans from and estimates the heat input the heat
   balance misses (latent heat, a wrong convection coefficient …), which the feed-forward's
   power then compensates; the paper's adaptation then also uses the observed temperature.
@@ -93,6 +98,8 @@ class Controller:
     """Position controller with live, bumpless switching (see module docstring)."""
 
     HOLD_MARGIN_K = 1.0
+    TRACK_RATE_MM_S = 5.0  # FF+PID: a setpoint moving faster than this jumped
+    FFPID_MAX_PERIOD_S = 0.025  # FF+PID tracks worse at longer loop periods (logged)
 
     def __init__(
         self,
@@ -112,12 +119,17 @@ class Controller:
         ffpid: PID | None = None,
         observer: TemperatureObserver | None = None,
         ffpid_limit_mm: float = 1.0,
+        ffpid_hold_gains: PIDGains | None = None,
     ) -> None:
         self.wire = wire
         self.current_limit_a = float(current_limit_a)
         self.reference, self.pid, self.ff = reference, pid, feedforward
         self.ffpid, self.observer = ffpid, observer
         self.ffpid_limit_mm = ffpid_limit_mm
+        self.ffpid_hold_gains = ffpid_hold_gains
+        self._ffpid_track_gains = ffpid.gains if ffpid is not None else None
+        self._last_setpoint: float | None = None
+        self._warned_period = False
         self.open_loop = open_loop
         self.t_ceiling_c = t_ceiling_c
         self.ambient_c = ambient_c
@@ -180,13 +192,15 @@ class Controller:
 
     def set_gains(self, kp: float, ki: float, kd: float, law: str = "pid") -> None:
         """New gains from the next tick for the PID of ``law``: ``pid`` (W/mm, W/(mm·s),
-        W·s/mm) or ``ffpid`` (mm/mm, 1/s, s); the derivative filter is kept."""
-        target = {"pid": self.pid, "ffpid": self.ffpid}.get(law)
-        if law not in ("pid", "ffpid"):
-            raise ValueError(f"gains are for law pid or ffpid, got {law!r}")
+        W·s/mm), ``ffpid`` (tracking) or ``ffpid_hold`` (mm/mm, 1/s, s); the derivative
+        filter is kept."""
+        if law not in ("pid", "ffpid", "ffpid_hold"):
+            raise ValueError(f"gains are for law pid, ffpid or ffpid_hold, got {law!r}")
+        target = {"pid": self.pid and self.pid.gains, "ffpid": self._ffpid_track_gains,
+                  "ffpid_hold": self.ffpid_hold_gains}[law]  # fmt: skip
         if target is None:
             raise ValueError(f"no PID configured for {law}")
-        g = PIDGains(float(kp), float(ki), float(kd), target.gains.d_filter_s)
+        g = PIDGains(float(kp), float(ki), float(kd), target.d_filter_s)
         g.validate()
         with self._lock:
             self._pending_gains = (law, g)
@@ -242,7 +256,17 @@ class Controller:
             open_a, self._pending_open_a = self._pending_open_a, None
         if gains is not None:
             law, g = gains
-            (self.pid if law == "pid" else self.ffpid).set_gains(g)
+            if law == "pid":
+                self.pid.set_gains(g)
+            else:  # FF+PID: the set in use now changes at once, the other when scheduled
+                in_use = self.ffpid.gains
+                old = self._ffpid_track_gains if law == "ffpid" else self.ffpid_hold_gains
+                if law == "ffpid":
+                    self._ffpid_track_gains = g
+                else:
+                    self.ffpid_hold_gains = g
+                if in_use is old:
+                    self.ffpid.set_gains(g)
         if open_a is not None:
             self._open_current_a = open_a
         return mode
@@ -273,8 +297,10 @@ class Controller:
         if mode == "ffpid":
             if entering_ff:
                 self.ffpid.reset()
+                self._last_setpoint = None
             elif valid:
                 lim = self.ffpid_limit_mm
+                self._schedule_gains(dt, setpoint, position_mm)
                 u_mm = self.ffpid.update(dt, setpoint, position_mm, -lim, lim, 0.0,
                                          self._saturation, hold_up=self._hold < 0,
                                          hold_down=self._hold > 0)  # fmt: skip
@@ -300,6 +326,22 @@ class Controller:
         t_next = min(t_follow, self.ff.cooling_bound(t_s, self.reference, -u_mm))
         t_next = min(max(t_next, self.ambient_c), self.t_ceiling_c)
         return t_ref, self.ff.power(t_next, p_max, heat_w)
+
+    def _schedule_gains(self, dt: float, setpoint: float, position_mm: float) -> None:
+        """FF+PID: the tracking gains while the setpoint moves continuously, the hold gains
+        while it stands still (or jumps); the integral takes the proportional term's change,
+        so the shift does not step."""
+        last, self._last_setpoint = self._last_setpoint, setpoint
+        if self.ffpid_hold_gains is None:
+            return
+        rate = 0.0 if last is None else abs(setpoint - last) / dt
+        moving = 0.0 < rate <= self.TRACK_RATE_MM_S
+        new = self._ffpid_track_gains if moving else self.ffpid_hold_gains
+        if new is not self.ffpid.gains:
+            if last is not None:
+                e = position_mm - setpoint
+                self.ffpid.integral_w += (self.ffpid.gains.kp - new.kp) * e
+            self.ffpid.gains = new
 
     def _hold_branch(self, t_follow_c: float, heating: bool, new_branch: bool) -> float:
         """FF+PID: the PID may slow the wire down along its branch but not pull it back more
@@ -330,6 +372,11 @@ class Controller:
         first = not self._entered
         self._entered = True
         mode = self._mode
+        if mode == "ffpid" and dt > self.FFPID_MAX_PERIOD_S and not self._warned_period:
+            self._warned_period = True
+            log.warning("FF+PID at a %.0f ms loop period: its observer is tuned for ≤ %.0f ms and "
+                        "tracks worse; raise the loop rate", dt * 1e3,
+                        self.FFPID_MAX_PERIOD_S * 1e3)  # fmt: skip
         setpoint = done = None
         cycle, phase = 0, mode
         if self.reference is not None:
@@ -392,7 +439,9 @@ class Controller:
         if self.pid is not None:
             d["gains"] = self.pid.gains.as_dict()
         if self.ffpid is not None:
-            d["ffpid_gains"] = self.ffpid.gains.as_dict()
+            d["ffpid_gains"] = self._ffpid_track_gains.as_dict()
+            if self.ffpid_hold_gains is not None:
+                d["ffpid_hold_gains"] = self.ffpid_hold_gains.as_dict()
             d["ffpid_limit_mm"] = self.ffpid_limit_mm
         if self.ff is not None:
             d["feedforward"] = {

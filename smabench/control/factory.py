@@ -36,6 +36,7 @@ class ControllerSettings:
     gains: PIDGains | None = None  # PID law, W/mm …; None: the per-load table
     ffpid_gains: PIDGains | None = None  # FF+PID's PID, mm/mm …; None: the per-load table
     ffpid_limit_mm: float = 1.0  # largest setpoint shift of FF+PID's PID
+    ffpid_hold_gains: PIDGains | None = None  # FF+PID on setpoint holds; None: the table
     model: str = "sigmoid"  # loop model of the feed-forward: sigmoid, 1, 2
     adapt: bool = True
     lead_s: float | None = None  # None: each branch's identified kinetic lag
@@ -50,7 +51,7 @@ class ControllerSettings:
     def validate(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"unknown controller {self.mode!r}; choose from {', '.join(MODES)}")
-        for g in (self.gains, self.ffpid_gains):
+        for g in (self.gains, self.ffpid_gains, self.ffpid_hold_gains):
             if g is not None:
                 g.validate()
         if self.model not in ("sigmoid", "1", "2"):
@@ -113,6 +114,7 @@ def build_controller(
                      preview_slack_s=ctrl.preview_slack_s)  # fmt: skip
     gains = ctrl.gains or gains_for_load(load_kg)
     ffpid_gains = ctrl.ffpid_gains or gains_for_load(load_kg, law="ffpid")
+    ffpid_hold_gains = ctrl.ffpid_hold_gains or gains_for_load(load_kg, law="ffpid_hold")
     observer = None
     if ctrl.observer is not None:
         observer = TemperatureObserver(fit.loop_model, wire, lags, ctrl.observer, ambient_c)
@@ -137,6 +139,8 @@ def build_controller(
         "gains_source": "settings" if ctrl.gains else f"per-load table ({load_kg:g} kg)",
         "ffpid_gains_source": "settings" if ctrl.ffpid_gains else
                               f"per-load table ({load_kg:g} kg)",  # fmt: skip
+        "ffpid_hold_gains_source": "settings" if ctrl.ffpid_hold_gains else
+                                   f"per-load table ({load_kg:g} kg)",  # fmt: skip
         "switches": [[t, m] for t, m in ctrl.switches],
     }
     return Controller(
@@ -154,4 +158,5 @@ def build_controller(
         ffpid=PID(ffpid_gains),
         observer=observer,
         ffpid_limit_mm=ctrl.ffpid_limit_mm,
+        ffpid_hold_gains=ffpid_hold_gains,
     )

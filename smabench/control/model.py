@@ -169,7 +169,9 @@ class InverseLoop:
 
     ``t_min_c`` / ``t_max_c``: coldest (ambient) and hottest temperature the controller may use.
     ``deadband_mm``: the setpoint must move back this far from its extreme to count as a
-    reversal. ``adapt``: take reversal points from the wire and refit amplitudes.
+    reversal. ``adapt``: take reversal points from the wire and refit amplitudes; a refitted
+    amplitude outside ``scale_range`` is not used (it comes from samples the kinetic lag
+    displaced, e.g. right after a step, not from the branch).
     """
 
     model: object
@@ -179,6 +181,7 @@ class InverseLoop:
     adapt: bool = True
     refit_samples: int = 12
     table_points: int = 97
+    scale_range: tuple[float, float] = (0.5, 2.0)  # plausible refitted amplitudes
     memory: int = 1  # reversal points kept: 1 = the paper's moved first common point only
     flat_fraction: float = 0.004  # "no motion" band at a branch start, fraction of the stroke
     heating: bool = True
@@ -351,7 +354,10 @@ class InverseLoop:
         stroke = abs(self.high[1] - self.low[1])
         if denom < (0.03 * stroke) ** 2 * len(ts):
             return  # the branch is too close to its chord here: amplitude not observable
-        s = float(np.clip(np.dot(dev, ym - chord) / denom, 0.5, 2.0))
+        s = float(np.dot(dev, ym - chord) / denom)
+        if not self.scale_range[0] <= s <= self.scale_range[1]:
+            log.info("branch amplitude refit %.2f outside %s: not used", s, self.scale_range)
+            return
         self._branch_scale = s
         self.scale[self.heating] = 0.5 * (self.scale[self.heating] + s)
         self.refits.append(s)

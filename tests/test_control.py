@@ -167,6 +167,67 @@ def test_observer_gate_stays_shut_on_the_nominal_plant_and_opens_with_latent_hea
         assert lo <= mean <= hi, (effects, mean)
 
 
+def test_observer_gate_stays_shut_on_a_nominal_4_kg_staircase():
+    """Minor branches after the staircase's reversals: the open-loop model starts them at the
+    wire's measured position (as the inverse does), so it does not drift from the wire and
+    open the gate on the plant the model was identified on (the model's own reversal points
+    drifted 1 mm within four stairs at a 17.5 ms loop period)."""
+    p = ProtocolSettings(name="staircase", cycles=1, period_s=40.0, amplitude_mm=0.8)
+    c = build_controller(p, ControllerSettings(mode="ffpid"), 4.0, PAPER_WIRE, 2.0)
+    gate = []
+    run_closed_loop(c, 4.0, 48.0, dt_s=0.0175, seed=5,
+                    on_tick=lambda k, t: gate.append(c.observer.gate))  # fmt: skip
+    assert max(gate) < 0.5 and np.mean(gate) < 0.05, (max(gate), np.mean(gate))
+
+
+def test_ffpid_uses_hold_gains_on_holds_and_tracking_gains_while_the_setpoint_moves():
+    hold, track = gains_for_load(2.0, law="ffpid_hold"), gains_for_load(2.0, law="ffpid")
+    assert hold.kp == 0.0 and 0.0 < hold.ki < track.ki
+    c = make("ffpid")  # sine after an 8 s lead-in hold
+    used, shifts = [], []
+
+    def tick(k, t):
+        used.append(c.ffpid.gains)
+        shifts.append(c.ffpid.last_output_w)
+
+    tr = run_closed_loop(c, 2.0, 12.0, on_tick=tick)
+    t = tr.t_s
+    assert all(g == hold for g, tt in zip(used, t, strict=True) if 1.0 < tt < 7.9)
+    assert all(g == track for g, tt in zip(used, t, strict=True) if 8.5 < tt < 12.0)
+    # the switch moves the proportional term into the integral: no step in the shift (mm)
+    k = next(i for i, g in enumerate(used) if g == track)
+    assert abs(shifts[k + 1] - shifts[k]) < 0.01
+    assert c.describe()["ffpid_hold_gains"] == hold.as_dict()
+
+
+@pytest.mark.parametrize("load, ratio", [(1.0, 0.8), (2.0, 0.8), (4.0, 1.0)])
+def test_ffpid_is_no_worse_than_pid_on_steps_in_the_offline_loop(load, ratio):
+    """The issue's step target: the feed-forward lands the step, the hold gains only trim.
+    (With the tracking gains on the holds the ratio was 0.84–0.92 at 1 and 2 kg.)"""
+    rms = {m: _rms_after_lead_in(make(m, kind="step", period=30.0, load=load), load, None)
+           for m in ("pid", "ffpid")}  # fmt: skip
+    assert rms["ffpid"] <= ratio * rms["pid"], rms
+
+
+def test_amplitude_refit_outside_its_range_is_not_used():
+    """Samples the kinetic lag displaced (right after a step) can ask for an amplitude far
+    outside the plausible range: the inverse then keeps the amplitude it had."""
+    fit = loop_model_for(2.0, PAPER_WIRE, "sigmoid")
+    (t1, _), (t2, _) = InverseLoop(fit.loop_model, 22.0, 120.0).low, (120.0, 0.0)
+    for factor, accepted in ((3.0, False), (1.3, True)):
+        inv = InverseLoop(fit.loop_model, 22.0, 120.0)
+        inv.temperature(2.0)  # heating branch, major
+        start, target = inv._start_target()
+        for t in np.linspace(max(t1, 30.0), min(t2, 90.0), 40):  # the wire deeper than the model
+            chord = start[1] + (t - start[0]) / (target[0] - start[0]) * (target[1] - start[1])
+            y = chord + factor * (inv.forward(t, True) - chord)
+            inv.observe(float(t), float(y))
+        if accepted:
+            assert inv.refits == [pytest.approx(factor, rel=0.05)]
+        else:
+            assert inv.refits == [] and inv.scale[True] == 1.0
+
+
 def test_adaptation_moves_the_first_common_point_to_the_wire_reversal():
     c = make("ffpid")
     run_closed_loop(c, 2.0, 60.0, dt_s=0.02)
@@ -279,6 +340,7 @@ def test_gains_are_per_load_and_go_into_the_session():
         d = make("pid", load=load).describe()
         assert d["gains"] == gains_for_load(load).as_dict()
         assert d["ffpid_gains"] == gains_for_load(load, law="ffpid").as_dict()
+        assert d["ffpid_hold_gains"] == gains_for_load(load, law="ffpid_hold").as_dict()
         assert d["gains_source"] == f"per-load table ({load:g} kg)"
     tables = {load: gains_for_load(load).as_dict() for load in (1.0, 2.0, 4.0)}
     assert len({tuple(g.values()) for g in tables.values()}) > 1  # not one set for all

@@ -387,3 +387,21 @@ def test_run_cli_closed_loop_with_switch(run_cli, tmp_path):
                   "pid", "--amplitude-mm", "9", "--out", tmp_path)  # fmt: skip
     assert bad.returncode != 0 and "reachable stroke" in bad.stderr
     assert MODES == ("open_loop", "pid", "ff", "ffpid")
+
+
+def test_run_cli_takes_ffpid_gains_and_stores_them(run_cli, tmp_path):
+    proc = run_cli(
+        "run", "--mock", "--mock-speed", "10", "--load-kg", "2", "--protocol", "step",
+        "--controller", "ffpid", "--period-s", "4", "--cycles", "1", "--lead-in-s", "1",
+        "--ffpid-gains", "0.2", "1.5", "0", "--ffpid-hold-gains", "0", "0.05", "0",
+        "--out", tmp_path, "--session-id", "s", "--quiet",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    from smabench.sessions import load_session
+
+    c = load_session(tmp_path / "s").meta["controller"]
+    assert c["ffpid_gains"] == {"kp": 0.2, "ki": 1.5, "kd": 0.0, "d_filter_s": 0.05}
+    assert c["ffpid_hold_gains"]["ki"] == 0.05 and c["ffpid_hold_gains_source"] == "settings"
+    bad = run_cli("run", "--mock", "--load-kg", "2", "--protocol", "step", "--controller",
+                  "ffpid", "--ffpid-hold-gains", "0", "-1", "0", "--out", tmp_path)  # fmt: skip
+    assert bad.returncode == 2 and "gain ki must be in 0 … 100" in bad.stderr

@@ -216,9 +216,14 @@ def settings_from_args(args: argparse.Namespace) -> RunSettings:
             if None in (args.kp, args.ki):
                 raise ValueError("give at least --kp and --ki (and optionally --kd)")
             gains = PIDGains(args.kp, args.ki, args.kd or 0.0)
+        # FF+PID's PIDs: mm/mm, 1/s, s, with the tables' derivative filter
+        ffpid = PIDGains(*args.ffpid_gains, 0.05) if args.ffpid_gains else None
+        hold = PIDGains(*args.ffpid_hold_gains, 0.05) if args.ffpid_hold_gains else None
         controller = ControllerSettings(
             mode=args.controller or "pid",
             gains=gains,
+            ffpid_gains=ffpid,
+            ffpid_hold_gains=hold,
             model=args.ff_model,
             adapt=not args.no_adapt,
             switches=[parse_switch(x) for x in args.switch_at],
@@ -444,6 +449,14 @@ def add_commands(sub) -> None:
     ctl.add_argument("--kp", type=float, help="PID gain, W/mm (default: per-load table)")
     ctl.add_argument("--ki", type=float, help="PID gain, W/(mm·s)")
     ctl.add_argument("--kd", type=float, help="PID gain, W·s/mm")
+    ctl.add_argument(
+        "--ffpid-gains", type=float, nargs=3, metavar=("KP", "KI", "KD"),
+        help="FF+PID's gains while the setpoint moves: mm/mm, 1/s, s (default: per-load table)",
+    )  # fmt: skip
+    ctl.add_argument(
+        "--ffpid-hold-gains", type=float, nargs=3, metavar=("KP", "KI", "KD"),
+        help="FF+PID's gains while the setpoint holds still (default: per-load table, 0 0.02 0)",
+    )  # fmt: skip
     ctl.add_argument(
         "--ff-model", choices=["sigmoid", "1", "2"], default="sigmoid", help="feed-forward model"
     )

@@ -200,6 +200,21 @@ def test_ffpid_uses_hold_gains_on_holds_and_tracking_gains_while_the_setpoint_mo
     assert c.describe()["ffpid_hold_gains"] == hold.as_dict()
 
 
+def test_live_gain_changes_for_both_ffpid_sets_in_one_tick_are_both_applied():
+    c = make("ffpid", period=20.0)
+
+    def tick(k, t):
+        if k == 800:  # 10 s: the sine is moving
+            c.set_gains(0.25, 1.0, 0.0, law="ffpid")
+            c.set_gains(0.0, 0.03, 0.0, law="ffpid_hold")
+
+    run_closed_loop(c, 2.0, 12.0, on_tick=tick)
+    assert (c.ffpid.gains.kp, c.ffpid.gains.ki) == (0.25, 1.0)  # moving: in use
+    assert c.describe()["ffpid_hold_gains"]["ki"] == 0.03
+    with pytest.raises(ValueError, match="pid, ffpid or ffpid_hold"):
+        c.set_gains(0.1, 0.1, 0.0, law="ff")
+
+
 @pytest.mark.parametrize("load, ratio", [(1.0, 0.8), (2.0, 0.8), (4.0, 1.0)])
 def test_ffpid_is_no_worse_than_pid_on_steps_in_the_offline_loop(load, ratio):
     """The issue's step target: the feed-forward lands the step, the hold gains only trim.
@@ -213,12 +228,11 @@ def test_amplitude_refit_outside_its_range_is_not_used():
     """Samples the kinetic lag displaced (right after a step) can ask for an amplitude far
     outside the plausible range: the inverse then keeps the amplitude it had."""
     fit = loop_model_for(2.0, PAPER_WIRE, "sigmoid")
-    (t1, _), (t2, _) = InverseLoop(fit.loop_model, 22.0, 120.0).low, (120.0, 0.0)
     for factor, accepted in ((3.0, False), (1.3, True)):
         inv = InverseLoop(fit.loop_model, 22.0, 120.0)
         inv.temperature(2.0)  # heating branch, major
         start, target = inv._start_target()
-        for t in np.linspace(max(t1, 30.0), min(t2, 90.0), 40):  # the wire deeper than the model
+        for t in np.linspace(max(inv.low[0], 30.0), 90.0, 40):  # the wire deeper than the model
             chord = start[1] + (t - start[0]) / (target[0] - start[0]) * (target[1] - start[1])
             y = chord + factor * (inv.forward(t, True) - chord)
             inv.observe(float(t), float(y))

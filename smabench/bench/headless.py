@@ -209,7 +209,7 @@ def settings_from_args(args: argparse.Namespace) -> RunSettings:
     )
     controller = None
     if args.controller is not None or args.switch_at:
-        from smabench.control import ControllerSettings, PIDGains, parse_switch
+        from smabench.control import ControllerSettings, PIDGains, gains_for_load, parse_switch
 
         gains = None
         if any(v is not None for v in (args.kp, args.ki, args.kd)):
@@ -217,8 +217,9 @@ def settings_from_args(args: argparse.Namespace) -> RunSettings:
                 raise ValueError("give at least --kp and --ki (and optionally --kd)")
             gains = PIDGains(args.kp, args.ki, args.kd or 0.0)
         # FF+PID's PIDs: mm/mm, 1/s, s, with the tables' derivative filter
-        ffpid = PIDGains(*args.ffpid_gains, 0.05) if args.ffpid_gains else None
-        hold = PIDGains(*args.ffpid_hold_gains, 0.05) if args.ffpid_hold_gains else None
+        tf = gains_for_load(args.load_kg, law="ffpid").d_filter_s
+        ffpid = PIDGains(*args.ffpid_gains, tf) if args.ffpid_gains else None
+        hold = PIDGains(*args.ffpid_hold_gains, tf) if args.ffpid_hold_gains else None
         controller = ControllerSettings(
             mode=args.controller or "pid",
             gains=gains,

@@ -144,7 +144,7 @@ class Controller:
         self.stroke_mm = stroke_mm
         self._lock = threading.Lock()
         self._pending_mode: str | None = None
-        self._pending_gains: tuple[str, PIDGains] | None = None
+        self._pending_gains: dict[str, PIDGains] = {}  # by law, applied at the next tick
         self._pending_open_a: float | None = None
         self._check_mode(mode)
         self._mode = mode
@@ -197,14 +197,15 @@ class Controller:
         filter is kept."""
         if law not in ("pid", "ffpid", "ffpid_hold"):
             raise ValueError(f"gains are for law pid, ffpid or ffpid_hold, got {law!r}")
-        target = {"pid": self.pid and self.pid.gains, "ffpid": self._ffpid_track_gains,
+        pid = self.pid.gains if self.pid is not None else None
+        target = {"pid": pid, "ffpid": self._ffpid_track_gains,
                   "ffpid_hold": self.ffpid_hold_gains}[law]  # fmt: skip
         if target is None:
             raise ValueError(f"no PID configured for {law}")
         g = PIDGains(float(kp), float(ki), float(kd), target.d_filter_s)
         g.validate()
         with self._lock:
-            self._pending_gains = (law, g)
+            self._pending_gains[law] = g
 
     def set_open_loop_current(self, current_a: float) -> None:
         """Current held in open-loop mode (when no open-loop protocol is wrapped)."""
@@ -253,20 +254,18 @@ class Controller:
                 self._pending_mode = m
         with self._lock:
             mode, self._pending_mode = self._pending_mode, None
-            gains, self._pending_gains = self._pending_gains, None
+            gains = self._pending_gains
+            if gains:
+                self._pending_gains = {}
             open_a, self._pending_open_a = self._pending_open_a, None
-        if gains is not None:
-            law, g = gains
+        for law, g in gains.items():
             if law == "pid":
                 self.pid.set_gains(g)
-            else:  # FF+PID: the set in use now changes at once, the other when scheduled
-                in_use = self.ffpid.gains
-                old = self._ffpid_track_gains if law == "ffpid" else self.ffpid_hold_gains
-                if law == "ffpid":
-                    self._ffpid_track_gains = g
-                else:
-                    self.ffpid_hold_gains = g
-                if in_use is old:
+            elif law == "ffpid_hold":  # FF+PID: the scheduler puts the new set in use
+                self.ffpid_hold_gains = g
+            else:
+                self._ffpid_track_gains = g
+                if self.ffpid_hold_gains is None:  # no scheduler: in use at once
                     self.ffpid.set_gains(g)
         if open_a is not None:
             self._open_current_a = open_a

@@ -79,7 +79,6 @@ class ObserverSettings:
     ahead_while_moving: bool = True  # use "ahead" errors while the wire moves along the branch
     gate_mm: float = 0.15  # corrections fade in as the open-loop RMS error passes 1 … 2 × this
     gate_tau_s: float = 3.0  # time constant of that RMS
-    measured_reversals: bool = False  # the observer's branch starts at the measured position
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -151,10 +150,9 @@ class TemperatureObserver:
             t_rev = self._ext_c
             y_model = self._branch(t_rev)
             y_meas = y_model if self._ext_y is None else self._ext_y
-            y_rev = y_meas if self.s.measured_reversals else y_model
             self.heating = not self.heating
             inside = self.low[0] < t_rev < self.high[0]
-            self.start = (t_rev, y_rev) if inside else None
+            self.start = (t_rev, y_model) if inside else None
             self.start_open = (t_rev, y_meas) if inside else None
             self._ext_c = t
 

@@ -76,7 +76,9 @@ FFPID_GAIN_TABLE: dict[float, PIDGains] = {  # mm/mm, 1/s, s, s
 # overshoots the other way; the feed-forward alone lands within ≈ 0.05 mm, so the feedback only
 # trims a steady offset. Chosen on the benchmark's 24 cases offline (nominal and latent-heat
 # plants, 3 loop periods; FF+PID / PID RMS): hold ki 0 (no feedback on holds) fails the latent
-# steps, 0.02 /s meets all 24, 0.03–0.15 /s meet 18–21; the tracking gains on holds meet 16.
+# steps, 0.02 /s meets all 24, 0.03–0.15 /s meet 18–21 at the worst period; the tracking gains
+# on holds meet 16. (Swept before the observer gate took measured reversal points; with it,
+# 0.02 /s meets all 24 at six loop periods.)
 FFPID_HOLD_GAIN_TABLE: dict[float, PIDGains] = {  # mm/mm, 1/s, s, s
     1.0: PIDGains(0.0, 0.02, 0.0, 0.05),
     2.0: PIDGains(0.0, 0.02, 0.0, 0.05),

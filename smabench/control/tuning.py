@@ -22,6 +22,7 @@ import logging
 
 import numpy as np
 
+from smabench.bench.control_bench import REFERENCES
 from smabench.bench.protocols import ProtocolSettings
 from smabench.control.factory import ControllerSettings, build_controller
 from smabench.control.pid import PIDGains
@@ -31,13 +32,7 @@ from smabench.physics.wire import PAPER_WIRE
 
 log = logging.getLogger(__name__)
 
-# label: (reference kind, period s, cycles), as in smabench.bench.control_bench
-TUNING_REFERENCES = {
-    "step": ("step", 30.0, 2),
-    "staircase": ("staircase", 40.0, 1),
-    "sine 20 s": ("sine", 20.0, 2),
-    "sine 10 s": ("sine", 10.0, 3),
-}
+TUNING_REFERENCES = REFERENCES  # label: (reference kind, period s, cycles)
 AMPLITUDE_MM = 0.8
 LOOP_PERIOD_S = 0.0125  # the benchmark's 400 Hz at 5× speed
 

@@ -31,8 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import serial
-
-from drivers import protocol as p
+from smabench.drivers import protocol as p
 
 log = logging.getLogger(__name__)
 

@@ -24,7 +24,7 @@ import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from drivers.displacement import SensorMap, load_map
+from smabench.drivers.displacement import SensorMap, load_map
 
 
 class SensorServer:

@@ -239,7 +239,7 @@ def test_bad_settings_rejected_before_any_device_opens(tmp_path, args, message):
 @pytest.mark.emulator
 def test_session_with_the_real_firmware_in_simavr(tmp_path):
     """`--mock-firmware emulated`: the AVR build drives the plant through the harness."""
-    from drivers.mock.bench import SIM_BIN, SIM_ELF
+    from smabench.drivers.mock.bench import SIM_BIN, SIM_ELF
 
     if not (SIM_BIN.is_file() and SIM_ELF.is_file()) and not os.environ.get("CI"):
         pytest.skip("firmware build missing (`make -C firmware elf sim`)")

@@ -11,9 +11,8 @@ import time
 
 import pytest
 import serial
-
-from drivers import protocol as p
-from drivers.current_source import (
+from smabench.drivers import protocol as p
+from smabench.drivers.current_source import (
     CommandRejected,
     CurrentSource,
     CurrentSourceError,
@@ -21,8 +20,8 @@ from drivers.current_source import (
     LinkTimeout,
     VersionMismatch,
 )
-from drivers.mock.firmware import Electrical, MockFirmware
-from drivers.mock.serial_device import SerialDevice
+from smabench.drivers.mock.firmware import Electrical, MockFirmware
+from smabench.drivers.mock.serial_device import SerialDevice
 
 F = p.Flag
 

@@ -11,8 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-
-from drivers.displacement import (
+from smabench.drivers.displacement import (
     DATA_TYPES,
     FLAG_EXCEPTION,
     FLAG_FRAMING,
@@ -35,7 +34,7 @@ from drivers.displacement import (
     parse_map,
     parse_sensor_spec,
 )
-from drivers.modbus_sim import SensorServer
+from smabench.drivers.modbus_sim import SensorServer
 
 pytestmark = pytest.mark.timeout(60)
 

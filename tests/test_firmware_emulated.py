@@ -17,9 +17,8 @@ import time
 from pathlib import Path
 
 import pytest
-
-from drivers import protocol as p
-from drivers.current_source import CurrentSource, DeviceFault, VersionMismatch
+from smabench.drivers import protocol as p
+from smabench.drivers.current_source import CurrentSource, DeviceFault, VersionMismatch
 
 REPO = Path(__file__).resolve().parent.parent
 SIM = Path(os.environ.get("SMABENCH_SIM", REPO / "firmware/build/sim/smabench-sim"))

@@ -9,8 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
-
-from drivers import protocol as p
+from smabench.drivers import protocol as p
 
 REPO = Path(__file__).resolve().parent.parent
 VECTOR_DIR = REPO / "firmware" / "test-vectors"

@@ -1,13 +1,13 @@
 """The mock bench: the plant simulation served over the real transports.
 
-- current driver: :class:`~drivers.mock.serial_device.SerialDevice` (the Python firmware model,
+- current driver: :class:`~.serial_device.SerialDevice` (the Python firmware model,
   sharing the codec and the safety rules) on a pty, or with ``firmware="emulated"`` the real AVR
   firmware in simavr (``firmware/build/sim/smabench-sim``), coupled to the plant through the
   harness's stdin commands;
 - displacement sensor: a pymodbus server with the shipped register map, on TCP (127.0.0.1) and,
   when socat is installed, on RTU over a socat pty pair.
 
-The plant (:class:`~drivers.mock.plant_link.PlantLink`) is stepped by the current driver's
+The plant (:class:`~smabench.drivers.mock.plant_link.PlantLink`) is stepped by the current driver's
 device time with the current it measures, so ``speed`` > 1 runs the whole bench faster. The
 Modbus server reads the slider position from the plant at every request.
 
@@ -32,10 +32,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from drivers.mock.firmware import Electrical, MockFirmware
-from drivers.mock.plant_link import PlantLink
-from drivers.mock.serial_device import SerialDevice
-from drivers.modbus_sim import SensorServer
+from smabench.drivers.mock.firmware import Electrical, MockFirmware
+from smabench.drivers.mock.plant_link import PlantLink
+from smabench.drivers.mock.serial_device import SerialDevice
+from smabench.drivers.modbus_sim import SensorServer
+
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE, Wire
 

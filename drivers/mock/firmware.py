@@ -3,7 +3,7 @@
 Same commands, ACK status codes, telemetry and safety rules as the C core: output off at start,
 after the host timeout, on a latched fault and on ENABLE 0; setpoints clamped to the active limit
 (never above the 2500 mA hard limit); OVERCURRENT and OPEN_WIRE latch until CLEAR_FAULTS.
-The frame codec is shared with the host driver (``drivers.protocol``).
+The frame codec is shared with the host driver (``smabench.drivers.protocol``).
 
 The electrical side is a first-order current loop: the measured current follows the clamped
 setpoint with the firmware's settling time, limited by what the supply can push through the
@@ -17,7 +17,7 @@ import math
 import struct
 from dataclasses import dataclass
 
-from drivers import protocol as p
+from smabench.drivers import protocol as p
 
 log = logging.getLogger(__name__)
 

@@ -34,7 +34,7 @@ import time
 import tty
 from collections.abc import Callable
 
-from drivers.mock.firmware import Electrical, MockFirmware
+from smabench.drivers.mock.firmware import Electrical, MockFirmware
 
 log = logging.getLogger(__name__)
 

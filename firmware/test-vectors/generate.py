@@ -8,14 +8,17 @@ Format: see README.md in this directory.
 
 from __future__ import annotations
 
+import importlib.util
 import struct
 import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent.parent))
 
-from drivers import protocol as p  # noqa: E402
+# the codec alone, by path: it imports nothing of smabench, so this runs without an install
+_spec = importlib.util.spec_from_file_location("protocol", HERE.parents[1] / "drivers/protocol.py")
+p = sys.modules["protocol"] = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(p)
 
 M = p.MsgType
 S = p.Status

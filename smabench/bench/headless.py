@@ -33,7 +33,7 @@ EXIT_ABORTED = 1
 # --------------------------------------------------------------------------- smabench mock
 def cmd_mock(args: argparse.Namespace) -> int:
     """Serve the mock bench until SIGINT/SIGTERM (or stdin EOF with --control-stdin)."""
-    from drivers.mock.bench import MockBench
+    from smabench.drivers.mock.bench import MockBench
     from smabench.physics.effects import Effects
 
     bench = MockBench(
@@ -109,7 +109,7 @@ class MockProcess:
     """``smabench mock`` in its own process; :attr:`ports` once it is ready."""
 
     def __init__(self, mock_args: list[str], timeout_s: float = 20.0) -> None:
-        from drivers.mock.bench import die_with_parent
+        from smabench.drivers.mock.bench import die_with_parent
 
         # it also ends on stdin EOF, i.e. when this process dies, whatever the signal
         self.proc = subprocess.Popen(
@@ -286,8 +286,8 @@ def open_devices(
     The settings are checked again against the driver's hard limit before anything but the
     handshake is sent; latched faults from before the session are cleared.
     """
-    from drivers.current_source import CurrentSource
-    from drivers.displacement import DisplacementSensor
+    from smabench.drivers.current_source import CurrentSource
+    from smabench.drivers.displacement import DisplacementSensor
 
     scale = settings.time_scale  # the device's clocks run `scale` × faster on a fast mock
     source = CurrentSource(

@@ -15,10 +15,10 @@ import time
 
 import numpy as np
 
-from drivers import protocol as p
-from drivers.current_source import CurrentSource
-from drivers.displacement import DisplacementSensor
 from smabench.bench.headless import MockProcess
+from smabench.drivers import protocol as p
+from smabench.drivers.current_source import CurrentSource
+from smabench.drivers.displacement import DisplacementSensor
 
 log = logging.getLogger(__name__)
 

@@ -84,9 +84,9 @@ class RunResult:
 class BenchRuntime:
     """Runs one session: call :meth:`run` (blocking) or :meth:`start` (own thread).
 
-    ``source`` is a ``drivers.current_source.CurrentSource``-like object (``set_current``,
+    ``source`` is a ``smabench.drivers.current_source.CurrentSource``-like object (``set_current``,
     ``enable``, ``latest()``, ``telemetry_age_s()``, ``fault_text()``, ``make_safe``), ``sensor`` a
-    ``drivers.displacement.DisplacementSensor``-like object (``read_or_flag``, ``make_safe``),
+    ``DisplacementSensor``-like object (``read_or_flag``, ``make_safe``),
     ``record`` a callable taking one row dict (the session writer's ``append``).
     """
 

@@ -5,7 +5,7 @@ apply the current for one period) for unit tests and for tuning; the benchmark
 (``smabench bench control``) runs the same controller against the mock bench over the real
 transports instead. Like the mock bench, the plant is stepped in sub-steps of ``substep_s``
 (1 ms) and the driver's current follows the command with the firmware's first-order settling
-(``current_tau_s``, 8 ms; ``drivers.mock.firmware.CURRENT_TAU_MS``), so the loop sees the same
+(``current_tau_s``, 8 ms; the mock firmware's ``CURRENT_TAU_MS``), so the loop sees the same
 actuator lag as on the bench.
 """
 

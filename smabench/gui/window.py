@@ -144,7 +144,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sensor_unit = QtWidgets.QSpinBox()
         self.sensor_unit.setRange(1, 247)
         self.sensor_map = QtWidgets.QComboBox()
-        from drivers.displacement import available_maps
+        from smabench.drivers.displacement import available_maps
 
         self.sensor_map.addItems(available_maps())
         self.sensor_map.setCurrentText("generic-rs485-laser")

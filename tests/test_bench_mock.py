@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from smabench.bench.headless import MockProcess, open_devices
-from smabench.bench.protocols import ProtocolSettings
 from smabench.bench.runtime import FLAG_SENSOR_INVALID
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.physics.plant import simulate_plant
+from smabench.protocols import ProtocolSettings
 from smabench.sessions import load_session
 
 SPEED = 10

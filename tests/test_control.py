@@ -10,7 +10,6 @@ import threading
 import numpy as np
 import pytest
 
-from smabench.bench.protocols import ProtocolSettings
 from smabench.bench.runtime import BenchRuntime
 from smabench.control import ControllerSettings, PIDGains, build_controller, parse_switch
 from smabench.control.controller import MODES
@@ -20,6 +19,7 @@ from smabench.control.pid import PID, gains_for_load
 from smabench.control.sim import run_closed_loop
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
+from smabench.protocols import ProtocolSettings
 
 LATENT = Effects(latent_heat=24000)
 
@@ -323,7 +323,7 @@ def test_runtime_mode_interface_is_validated_and_thread_safe():
     with pytest.raises(ValueError):
         rt.set_gains(-1.0, 0.0, 0.0)
     # an open-loop protocol: only open_loop is accepted
-    from smabench.bench.protocols import Protocol
+    from smabench.protocols import Protocol
 
     rt2 = BenchRuntime(_Dummy(), _Dummy(), Protocol(ProtocolSettings()), lambda row: None)
     assert rt2.mode == "open_loop"

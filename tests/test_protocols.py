@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from smabench.bench.protocols import Protocol, ProtocolSettings
+from smabench.protocols import Protocol, ProtocolSettings
 
 
 def run(settings: ProtocolSettings, position=lambda t: 1.0, dt=0.01, t_max=500.0):

@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from smabench.control.reference import BENCHMARK_REFERENCES
+
 log = logging.getLogger(__name__)
 
 LOADS_KG = (1.0, 2.0, 4.0)
@@ -45,17 +47,11 @@ class Case:
     effect: str = ""
 
 
-REFERENCES = {
-    "step": ("step", 30.0, 2),
-    "staircase": ("staircase", 40.0, 1),
-    "sine 20 s": ("sine", 20.0, 2),
-    "sine 10 s": ("sine", 10.0, 3),
-}
-
-
-def all_cases(loads=LOADS_KG, refs=tuple(REFERENCES), effects=EFFECTS, controllers=CONTROLLERS):
+def all_cases(
+    loads=LOADS_KG, refs=tuple(BENCHMARK_REFERENCES), effects=EFFECTS, controllers=CONTROLLERS
+):
     return [
-        Case(r, *REFERENCES[r], load, c, e)
+        Case(r, *BENCHMARK_REFERENCES[r], load, c, e)
         for e in effects
         for r in refs
         for load in loads
@@ -66,9 +62,9 @@ def all_cases(loads=LOADS_KG, refs=tuple(REFERENCES), effects=EFFECTS, controlle
 def run_case(case: Case, speed: float = 5.0, rate_hz: float = 400.0) -> dict:
     """One session on its own mock; returns the figures."""
     from smabench.bench.headless import MockProcess, open_devices
-    from smabench.bench.protocols import ProtocolSettings
     from smabench.bench.session_run import RunSettings, run_session
     from smabench.control import ControllerSettings
+    from smabench.protocols import ProtocolSettings
     from smabench.sessions import load_session
 
     proto = ProtocolSettings(
@@ -207,7 +203,7 @@ def bench_control(
 
 def cmd_bench_control(args: argparse.Namespace) -> int:
     loads = tuple(args.loads) if args.loads else LOADS_KG
-    refs = tuple(args.refs) if args.refs else tuple(REFERENCES)
+    refs = tuple(args.refs) if args.refs else tuple(BENCHMARK_REFERENCES)
     effects = ("",) if args.nominal_only else EFFECTS
     cases = all_cases(loads, refs, effects)
     print(f"bench control: {len(cases)} sessions on the mock at {args.speed:g}×, "
@@ -232,7 +228,7 @@ def add_bench_control(bsub) -> None:
     b.add_argument("--rate-hz", type=float, default=400.0, help="loop rate, wall Hz (400)")
     b.add_argument("--jobs", type=int, default=1, help="sessions at a time (1)")
     b.add_argument("--loads", type=float, nargs="+", help="loads, kg (1 2 4)")
-    b.add_argument("--refs", nargs="+", choices=list(REFERENCES), help="references (all)")
+    b.add_argument("--refs", nargs="+", choices=list(BENCHMARK_REFERENCES), help="references (all)")
     b.add_argument("--nominal-only", action="store_true", help="skip the latent-heat plant")
     b.add_argument("--out", help="also write the table to this file")
     b.add_argument("--json", help="write the rows as JSON (updated after every case)")

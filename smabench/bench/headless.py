@@ -20,9 +20,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from smabench.bench.protocols import PROTOCOL_NAMES, Protocol, ProtocolSettings
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.physics.wire import PRESETS
+from smabench.protocols import PROTOCOL_NAMES, Protocol, ProtocolSettings
 
 log = logging.getLogger(__name__)
 

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from smabench.bench.headless import MockProcess, open_devices
-from smabench.bench.protocols import ProtocolSettings
 from smabench.bench.session_run import RunSettings, run_session
+from smabench.protocols import ProtocolSettings
 
 log = logging.getLogger(__name__)
 

@@ -35,8 +35,8 @@ from pathlib import Path
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
-from smabench.bench.protocols import Protocol, ProtocolSettings
 from smabench.bench.session_run import RunSettings, run_session
+from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import format_row
 
 log = logging.getLogger(__name__)

@@ -16,9 +16,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from smabench.bench.protocols import Protocol, ProtocolSettings
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
 from smabench.physics.wire import PRESETS
+from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import SessionWriter
 
 log = logging.getLogger(__name__)

@@ -3,8 +3,8 @@
 :class:`Controller` is a command source for :class:`~smabench.bench.runtime.BenchRuntime`: each
 tick the runtime calls :meth:`Controller.observe` (temperature estimate, ambient, resistance,
 position) and :meth:`Controller.update` ``(t_s, position_mm)``, which returns a
-:class:`ControlStep` with the current, the setpoint (``setpoint_mm`` column) and the active law
-(``mode`` column).
+:class:`~smabench.commands.CommandStep` with the current, the setpoint (``setpoint_mm``
+column) and the active law (``mode`` column).
 
 Laws, all computed in heating power P (W) and sent as ``I = sqrt(P/R)``:
 
@@ -52,8 +52,8 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from dataclasses import dataclass
 
+from smabench.commands import CommandStep
 from smabench.control.feedforward import FeedForward
 from smabench.control.observer import TemperatureObserver
 from smabench.control.pid import PID, PIDGains
@@ -64,19 +64,6 @@ from smabench.physics.wire import Wire
 log = logging.getLogger(__name__)
 
 MODES = ("open_loop", "pid", "ff", "ffpid")
-
-
-@dataclass(frozen=True)
-class ControlStep:
-    current_set_a: float
-    cycle: int
-    phase: str
-    setpoint_mm: float | None
-    mode: str
-    done: bool = False
-    power_w: float = 0.0
-    ff_power_w: float = 0.0
-    reference_temperature_c: float | None = None
 
 
 def parse_switch(text: str) -> tuple[float, str]:
@@ -361,7 +348,7 @@ class Controller:
             return self._ext_c + self.HOLD_MARGIN_K
         return t_follow_c
 
-    def update(self, t_s: float, position_mm: float) -> ControlStep:
+    def update(self, t_s: float, position_mm: float) -> CommandStep:
         dt = self._dt if self._last_t is None else max(t_s - self._last_t, 1e-4)
         self._dt = dt
         self._last_t = t_s
@@ -432,7 +419,7 @@ class Controller:
         self._saturation = 1 if power >= p_max - 1e-9 else (-1 if power <= 0.0 else 0)
         self.last_current_a = current
         self.last_power_w = power
-        return ControlStep(current, cycle, phase, setpoint, mode, bool(done), power, p_ff, t_ref)
+        return CommandStep(current, cycle, phase, setpoint, mode, bool(done), power, p_ff, t_ref)
 
     # ------------------------------------------------------------------ session metadata
     def describe(self) -> dict:

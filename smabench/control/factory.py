@@ -14,7 +14,6 @@ import logging
 import math
 from dataclasses import dataclass, field
 
-from smabench.bench.protocols import ProtocolSettings
 from smabench.control.controller import MODES, Controller
 from smabench.control.feedforward import FeedForward
 from smabench.control.model import InverseLoop, identify_kinetic_lag, identify_loop_model
@@ -22,6 +21,7 @@ from smabench.control.observer import ObserverSettings, TemperatureObserver
 from smabench.control.pid import PID, PIDGains, gains_for_load
 from smabench.control.reference import Reference, natural_rise_rate_mm_s
 from smabench.physics.wire import Wire
+from smabench.protocols import ProtocolSettings
 
 log = logging.getLogger(__name__)
 

@@ -31,6 +31,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from smabench.commands import CommandStep
+
 log = logging.getLogger(__name__)
 
 
@@ -233,7 +235,6 @@ class RelayTuner:
         self.t0: float | None = None
 
     def update(self, t_s: float, position_mm: float):
-        from smabench.control.controller import ControlStep
 
         if self.t0 is None:
             self.t0 = t_s
@@ -250,7 +251,7 @@ class RelayTuner:
         done = self.result is not None or t_s - self.t0 > self.max_duration_s
         p = self.bias_w + (self.step_w if self.high else -self.step_w)
         cur = math.sqrt(max(p, 0.0) / self.resistance_ohm)
-        return ControlStep(0.0 if done else cur, len(self.switch_t) // 2, "relay",
+        return CommandStep(0.0 if done else cur, len(self.switch_t) // 2, "relay",
                            self.setpoint_mm, "relay", done)  # fmt: skip
 
     def _switch(self, t_s: float) -> None:

@@ -1,7 +1,7 @@
 """Position references for the closed-loop controllers: step, staircase, sine, triangle.
 
 All waveforms run ``cycles`` periods of ``period_s`` about ``offset_mm`` with ``amplitude_mm``
-(from :class:`~smabench.bench.protocols.ProtocolSettings`), phased so that each period ends at
+(from :class:`~smabench.protocols.ProtocolSettings`), phased so that each period ends at
 ``offset + amplitude`` (the long, cold side); before the first period the setpoint is held there
 for ``lead_in_s`` so the wire starts from rest:
 
@@ -21,11 +21,20 @@ from __future__ import annotations
 
 import math
 
-from smabench.bench.protocols import REFERENCE_NAMES, ProtocolSettings
 from smabench.physics.thermal import time_constant_s
 from smabench.physics.wire import Wire
+from smabench.protocols import REFERENCE_NAMES, ProtocolSettings
 
 STAIRS = (0.5, 0.0, -0.5, -1.0, -0.5, 0.0, 0.5, 1.0)
+
+BENCHMARK_REFERENCES = {
+    "step": ("step", 30.0, 2),
+    "staircase": ("staircase", 40.0, 1),
+    "sine 20 s": ("sine", 20.0, 2),
+    "sine 10 s": ("sine", 10.0, 3),
+}
+"""The references of ``smabench bench control`` and of the gain tuning: label → (kind, period s,
+cycles)."""
 
 
 def waveform(kind: str, phase: float) -> float:

@@ -22,17 +22,17 @@ import logging
 
 import numpy as np
 
-from smabench.bench.control_bench import REFERENCES
-from smabench.bench.protocols import ProtocolSettings
 from smabench.control.factory import ControllerSettings, build_controller
 from smabench.control.pid import PIDGains
+from smabench.control.reference import BENCHMARK_REFERENCES
 from smabench.control.sim import run_closed_loop
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
+from smabench.protocols import ProtocolSettings
 
 log = logging.getLogger(__name__)
 
-TUNING_REFERENCES = REFERENCES  # label: (reference kind, period s, cycles)
+TUNING_REFERENCES = BENCHMARK_REFERENCES  # label: (reference kind, period s, cycles)
 AMPLITUDE_MM = 0.8
 LOOP_PERIOD_S = 0.0125  # the benchmark's 400 Hz at 5× speed
 

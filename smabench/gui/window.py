@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from smabench.bench.protocols import PROTOCOL_NAMES, REFERENCE_NAMES
 from smabench.gui.link import RuntimeLink, SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
+from smabench.protocols import PROTOCOL_NAMES, REFERENCE_NAMES
 
 log = logging.getLogger(__name__)
 

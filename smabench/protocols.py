@@ -17,7 +17,7 @@ periods of ``period_s`` about ``offset_mm`` with ``amplitude_mm``, after a ``lea
 ``staircase``, ``sine``, ``triangle``; see :class:`smabench.control.reference.Reference`.
 
 Each protocol is fed ``update(t_s, position_mm)`` at the loop rate and returns a
-:class:`ProtocolStep`; ``done`` is True once it has finished.
+:class:`~smabench.commands.CommandStep`; ``done`` is True once it has finished.
 """
 
 from __future__ import annotations
@@ -27,20 +27,14 @@ import math
 from collections import deque
 from dataclasses import dataclass
 
+from smabench.commands import CommandStep
+
 log = logging.getLogger(__name__)
 
 PROTOCOL_NAMES = ("cycles", "incomplete", "inner", "step", "ramp", "staircase", "sine", "triangle")
 REFERENCE_NAMES = ("step", "staircase", "sine", "triangle")
 """Protocols that are position references for a controller (``step`` is both)."""
 OPEN_LOOP_NAMES = ("cycles", "incomplete", "inner", "step", "ramp")
-
-
-@dataclass(frozen=True)
-class ProtocolStep:
-    current_set_a: float
-    cycle: int
-    phase: str
-    done: bool = False
 
 
 @dataclass
@@ -164,11 +158,11 @@ class Protocol:
         self.phase, self.phase_t0_s = phase, t_s
         self.settle.reset()
 
-    def update(self, t_s: float, position_mm: float) -> ProtocolStep:
+    def update(self, t_s: float, position_mm: float) -> CommandStep:
         if self.phase_t0_s is None:
             self.phase_t0_s = t_s
         if self.finished:
-            return ProtocolStep(0.0, self.cycle, "done", True)
+            return CommandStep(0.0, self.cycle, "done", done=True)
         dt = t_s - self.phase_t0_s
         s = self.s
         name = s.name
@@ -178,7 +172,7 @@ class Protocol:
                 self._enter("hold", t_s)
                 if self.cycle >= len(s.levels_a):
                     return self._finish()
-            return ProtocolStep(s.levels_a[self.cycle], self.cycle, "hold")
+            return CommandStep(s.levels_a[self.cycle], self.cycle, "hold")
         if name == "ramp":
             if dt >= 2 * s.ramp_s:
                 self.cycle += 1
@@ -187,15 +181,15 @@ class Protocol:
                     return self._finish()
                 dt = 0.0
             frac = dt / s.ramp_s if dt < s.ramp_s else 2.0 - dt / s.ramp_s
-            return ProtocolStep(s.current_a * frac, self.cycle, "ramp")
+            return CommandStep(s.current_a * frac, self.cycle, "ramp")
         heat_s = s.heat_s
         if name == "inner" and self.cycle > 0:
             heat_s = s.inner_heat_s
         if self.phase == "heat":
             if dt >= heat_s:
                 self._enter("cool", t_s)
-                return ProtocolStep(0.0, self.cycle, "cool")
-            return ProtocolStep(s.current_a, self.cycle, "heat")
+                return CommandStep(0.0, self.cycle, "cool")
+            return CommandStep(s.current_a, self.cycle, "heat")
         # cooling
         settled = self.settle.update(t_s, position_mm)
         if name == "incomplete" and self.cycle < s.cycles - 1:
@@ -209,10 +203,10 @@ class Protocol:
             if self.cycle >= s.cycles:
                 return self._finish()
             self._enter("heat", t_s)
-            return ProtocolStep(s.current_a, self.cycle, "heat")
-        return ProtocolStep(0.0, self.cycle, "cool")
+            return CommandStep(s.current_a, self.cycle, "heat")
+        return CommandStep(0.0, self.cycle, "cool")
 
-    def _finish(self) -> ProtocolStep:
+    def _finish(self) -> CommandStep:
         self.finished = True
         self.cycle = max(0, self.cycle - 1)
-        return ProtocolStep(0.0, self.cycle, "done", True)
+        return CommandStep(0.0, self.cycle, "done", done=True)

@@ -35,7 +35,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev,gui]'
+	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
 lint: venv

@@ -21,8 +21,13 @@ import numpy as np
 log = logging.getLogger("smabench")
 
 EXIT_USAGE = 2
-REPO_ROOT = Path(__file__).resolve().parent.parent
-DEFAULT_DATA_DIR = REPO_ROOT / "sessions" / "samples" / "flexinol-isobaric"
+
+def default_data_dir() -> Path:
+    """The measured Flexinol loops shipped as package data (``smabench.samples``)."""
+    from smabench.samples import sample_dir
+
+    return sample_dir("flexinol-isobaric")
+
 
 
 class CliError(Exception):
@@ -300,7 +305,7 @@ def cmd_bench_model(args: argparse.Namespace) -> int:
     from smabench.physics.model_bench import benchmark_models, format_table
     from smabench.physics.plant import benchmark_plant
 
-    loops = _load_flexinol(Path(args.data))
+    loops = _load_flexinol(Path(args.data) if args.data else default_data_dir())
     rows = benchmark_models(loops)
     print(format_table(rows))
     plant = benchmark_plant()
@@ -399,7 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--cycles", type=_positive(int), default=3, help="heating cycles (3)")
     s.add_argument("--speed", type=_positive(), default=5.0, help="mock bench speed, × (5)")
     s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
-    s.add_argument("--out", default=str(REPO_ROOT / "sessions"), help="parent folder")
+    s.add_argument("--out", default="sessions", help="parent folder (./sessions)")
     s.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("export", help="export a session's samples as CSV for spreadsheets")
@@ -422,8 +427,8 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("model", help="model speed and accuracy, plant speed")
     b.add_argument(
         "--data",
-        default=str(DEFAULT_DATA_DIR),
-        help="folder with the Flexinol loops (filtered_data_*.txt)",
+        default=None,
+        help="folder with the Flexinol loops (filtered_data_*.txt; default: the shipped pair)",
     )
     b.set_defaults(func=cmd_bench_model)
     b = bsub.add_parser("loop", help="bench loop rate and jitter against the mock bench")
@@ -478,6 +483,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         msg = str(exc) or exc.__class__.__name__
         print(f"smabench {args.command}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE
+    except ImportError as exc:  # a missing GUI library or Qt system library: say what to install
+        if args.verbose:
+            raise
+        print(f"smabench {args.command}: error: {missing_library_hint(exc)}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+QT_SYSTEM_PACKAGES = "libegl1 libgl1 libxkbcommon0 libfontconfig1 libdbus-1-3 libglib2.0-0"
+
+
+def missing_library_hint(exc: ImportError) -> str:
+    """One line naming what to install for an ImportError (a module or a shared library)."""
+    name = (exc.name or "").split(".")[0]
+    if name in ("PySide6", "pyqtgraph", "shiboken6"):
+        return (f"{name} is missing: pip install 'PySide6-Essentials==6.11.3' pyqtgraph "
+                "(both come with smabench)")  # fmt: skip
+    if ".so" in str(exc):
+        return (f"Qt could not load a system library ({exc}): "
+                f"apt-get install {QT_SYSTEM_PACKAGES}")  # fmt: skip
+    return f"cannot import {exc.name or exc}: reinstall smabench (pip install smabench)"
 
 
 if __name__ == "__main__":

@@ -84,7 +84,8 @@ class EmulatedDriver:
         for path in (SIM_BIN, SIM_ELF):
             if not path.is_file():
                 raise FileNotFoundError(
-                    f"{path} missing: build the firmware with `make -C firmware elf sim`"
+                    f"{path} missing: build the firmware with `make -C firmware elf sim` in a "
+                    "smabench checkout (or point SMABENCH_SIM and SMABENCH_ELF at the builds)"
                 )
         self.link = link
         self.couple_s = couple_s

@@ -10,13 +10,20 @@ Start: ``python -m smabench.bench.remote DEVICES_JSON`` with ``{"mock": [mock ar
 Out (stdout), one line each:
 - ``P <json>``: the ports and device info once connected;
 - ``R <csv row>``: one sample, columns as ``samples.csv``, batched every ~30 ms;
-- ``S <json>``: status twice a second (link health; phase, cycle, progress while running) or an
-  ``error`` for a refused command;
+- ``S <json>``: status twice a second (link health, ``readout``: the latest current, position,
+  temperature, also while idle; phase, cycle, progress while running), ``started`` (the session
+  folder) when a start was accepted, or an ``error`` for a refused command;
+- ``X <json>``: after an ``estop``, what the driver's telemetry showed: when the command arrived
+  (``received_t``), when the output-off frame arrived (``output_off_t``) and when the measured
+  current fell below 20 mA (``current_off_t``), all ``time.monotonic()`` (one clock for every
+  process on Linux), or ``confirmed: false``;
 - ``E <json>``: a session ended (status, reason, samples, folder);
 - ``Q <json>``: the process is closing.
 In (stdin): ``start <settings json>`` (the fields of :class:`RunSettings`, ``protocol`` as the
 fields of :class:`ProtocolSettings`), ``estop``, ``stop``, ``pause``, ``resume``, ``mode NAME``,
-``gains KP KI KD``, ``quit``. EOF on stdin (the GUI died) e-stops and closes everything.
+``gains KP KI KD [LAW]`` (LAW: ``pid``, ``ffpid`` or ``ffpid_hold``), ``open_current A`` (the
+current held when switched to open loop), ``quit``. ``estop`` is obeyed on the reading thread at
+once, whatever another command is doing. EOF on stdin (the GUI died) e-stops and closes everything.
 """
 
 from __future__ import annotations
@@ -36,6 +43,7 @@ from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
 from smabench.bench.session_run import RunSettings, run_session
+from smabench.drivers.protocol import Flag
 from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import format_row
 
@@ -176,6 +184,9 @@ class BenchServer:
         self._session: threading.Thread | None = None
         self._t0 = time.monotonic()
         self.closed = threading.Event()
+        self._estops = 0  # e-stops so far: a start in flight when one arrives is e-stopped too
+        self._idle_lock = threading.Lock()  # the sensor is read while idle only under this lock
+        self._starting = False
 
     @property
     def running(self) -> bool:
@@ -184,7 +195,18 @@ class BenchServer:
     def start_session(self, settings_cfg: dict[str, Any]) -> None:
         if self.running:
             raise ValueError("a session is running")
+        estops_before = self._estops
+        with self._idle_lock:  # no idle sensor read from here on
+            self._starting = True
+        try:
+            self._start_session(settings_cfg, estops_before)
+        finally:
+            self._starting = False
+
+    def _start_session(self, settings_cfg: dict[str, Any], estops_before: int) -> None:
         settings = settings_from_json(settings_cfg)
+        if settings.session_id is None:  # the folder is named now, so the GUI can show it
+            settings.session_id = settings.folder().name
         settings.validate(device_limit_a=self.source.info.hard_limit_a)
         self.source.clear_faults()
         if settings.controller is not None:  # the controller is the command; no pause
@@ -208,6 +230,8 @@ class BenchServer:
 
         def on_start(runtime) -> None:
             self.runtime = runtime
+            if self._estops != estops_before:  # an e-stop came while this start was prepared
+                runtime.estop()
             realtime_loop_thread()  # this thread runs the loop next
             ready.set()
 
@@ -230,6 +254,39 @@ class BenchServer:
         self._session = threading.Thread(target=run, name="session", daemon=True)
         self._session.start()
         ready.wait(5.0)
+        self.emit.line("S", {"started": str(settings.folder())})
+
+    def estop(self) -> None:
+        """Output off now: through the running session's runtime (which then ends it as
+        aborted) or straight to the driver when idle; then report what the telemetry shows."""
+        received_t = time.monotonic()
+        self._estops += 1
+        frames: dict[str, Any] = {}
+        done = threading.Event()
+
+        def watch(tel) -> None:  # the driver's owner thread: keep it short
+            if tel.host_time < received_t:
+                return
+            if "output_off_t" not in frames and not tel.flags & Flag.ENABLED:
+                frames["output_off_t"] = tel.host_time
+            if "output_off_t" in frames and abs(tel.current_a) < 0.02:
+                frames["current_off_t"] = tel.host_time
+                done.set()
+
+        unsubscribe = self.source.subscribe(watch)
+        rt = self.runtime if self.running else None
+        if rt is not None:
+            rt.estop()
+        else:
+            self.source.make_safe()
+
+        def report() -> None:
+            done.wait(1.0)
+            unsubscribe()
+            self.emit.line("X", {"received_t": received_t, "confirmed": "output_off_t" in frames,
+                                 **frames})  # fmt: skip
+
+        threading.Thread(target=report, name="estop-report", daemon=True).start()
 
     def handle(self, line: str) -> bool:
         """One command line; returns False on ``quit``."""
@@ -244,10 +301,7 @@ class BenchServer:
             if cmd == "start":
                 self.start_session(json.loads(rest))
             elif cmd == "estop":
-                if rt is not None:
-                    rt.estop()
-                else:
-                    self.source.make_safe()
+                self.estop()
             elif cmd == "stop" and rt is not None:
                 rt.stop()
             elif cmd in ("pause", "resume") and rt is not None:
@@ -257,13 +311,21 @@ class BenchServer:
             elif cmd == "mode" and rt is not None:
                 rt.set_mode(rest.strip())
             elif cmd == "gains" and rt is not None:
-                rt.set_gains(*map(float, rest.split()[:3]))
-            elif cmd not in ("stop", "pause", "resume", "mode", "gains"):
+                args = rest.split()
+                law = args[3] if len(args) > 3 else "pid"
+                if self.command is not None:
+                    raise ValueError("gains are for a position reference under a controller")
+                self.protocol.set_gains(*map(float, args[:3]), law=law)
+            elif cmd == "open_current" and rt is not None:
+                if self.command is not None:
+                    raise ValueError("the open-loop current is for a controller session")
+                self.protocol.set_open_loop_current(float(rest))
+            elif cmd not in ("stop", "pause", "resume", "mode", "gains", "open_current"):
                 raise ValueError(f"unknown command {cmd!r}")
             else:
                 raise ValueError(f"{cmd}: no session running")
-        except (ValueError, TypeError, AttributeError, json.JSONDecodeError) as exc:
-            self.emit.line("S", {"error": f"{line.strip()}: {exc}"})
+        except Exception as exc:  # refused (or the devices failed): say why, keep serving
+            self.emit.line("S", {"error": f"{cmd}: {type(exc).__name__}: {exc}", "command": cmd})
         return True
 
     def status(self) -> dict[str, Any]:
@@ -272,6 +334,7 @@ class BenchServer:
             "driver_link_ok": bool(self.source.link_ok),
             "driver_fault": self.source.fault_text(),
             "sensor_stats": dict(self.sensor.stats),
+            "readout": self.readout(),
         }
         if self.protocol is not None and self.settings is not None:
             row = self.last_row
@@ -290,6 +353,28 @@ class BenchServer:
                 mode=getattr(self.runtime, "mode", "open_loop"),
             )
         return st
+
+    def readout(self) -> dict[str, float | None]:
+        """Latest current (A), position (mm), temperature estimate (°C), ambient (°C): from the
+        session's last sample while running, else from the telemetry and one sensor read."""
+        tel = self.source.latest()
+        out: dict[str, float | None] = {
+            "current_a": tel.current_a if tel is not None else None,
+            "ambient_c": tel.ambient_c if tel is not None else None,
+            "position_mm": None, "temperature_c": None,
+        }  # fmt: skip
+        if self.running:
+            row = self.last_row
+            out.update(position_mm=row.get("position_mm"),
+                       temperature_c=row.get("temperature_est_C"))  # fmt: skip
+        elif self._idle_lock.acquire(timeout=0.05):
+            try:
+                if not self._starting and not self.running:
+                    pos = float(self.sensor.read_or_flag().position_mm)
+                    out["position_mm"] = pos if math.isfinite(pos) else None
+            finally:
+                self._idle_lock.release()
+        return {k: (v if v is None or math.isfinite(v) else None) for k, v in out.items()}
 
     def status_loop(self) -> None:
         while not self.closed.wait(STATUS_S):
@@ -325,8 +410,19 @@ def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
     emit.line("P", {"driver": server.port, "sensor": server.spec, "device": server.info,
                     "mock_pid": server.mock.proc.pid if server.mock else None})  # fmt: skip
     threading.Thread(target=server.status_loop, name="status", daemon=True).start()
-    try:
+    lines: queue.SimpleQueue[str | None] = queue.SimpleQueue()
+
+    def read() -> None:  # an e-stop never waits behind a slow command (a start builds a model)
         for line in stdin:
+            if line.split(maxsplit=1)[:1] == ["estop"]:
+                server.handle(line)
+            else:
+                lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=read, name="stdin", daemon=True).start()
+    try:
+        while (line := lines.get()) is not None:
             if not server.handle(line):
                 break
     finally:

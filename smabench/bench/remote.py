@@ -103,10 +103,10 @@ def settings_from_json(cfg: dict[str, Any]) -> RunSettings:
         from smabench.control import ControllerSettings, PIDGains
 
         ctl = dict(ctl)
-        gains = ctl.pop("gains", None)
-        s["controller"] = ControllerSettings(
-            gains=PIDGains(*gains) if gains is not None else None, **ctl
-        )
+        for key in ("gains", "ffpid_gains", "ffpid_hold_gains"):  # [kp, ki, kd(, d_filter_s)]
+            if ctl.get(key) is not None:
+                ctl[key] = PIDGains(*ctl[key])
+        s["controller"] = ControllerSettings(**ctl)
     settings = RunSettings(protocol=ProtocolSettings(**proto), **s)
     settings.validate()
     return settings

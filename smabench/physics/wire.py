@@ -42,6 +42,10 @@ class Wire:
             fraction behind its equilibrium value on heating (A-forming) / cooling (M-forming,
             nucleation-limited, slower), s (0 … 2): widens the loop with the heating/cooling
             rate, so larger h widens and larger cp thins it (paper Fig. 11).
+        long_life_stress_mpa: highest stress for a long cycle life, MPa. Flexinol: 172 MPa
+            (≈ 25,000 psi; Dynalloy, "Technical Characteristics of Flexinol Actuator Wires",
+            F1140 Rev I.2, whose curves are drawn at 172 MPa and whose pull forces are based on
+            it): ≈ 2 kg on 0.38 mm. A heavier load needs the operator's confirmation.
     """
 
     radius_m: float = 0.19e-3
@@ -65,6 +69,7 @@ class Wire:
     hysteresis_shrink_k_per_mpa: float = 0.03
     kinetics_tau_heating_s: float = 0.05
     kinetics_tau_cooling_s: float = 0.5
+    long_life_stress_mpa: float = 172.0
 
     @property
     def area_m2(self) -> float:
@@ -121,7 +126,8 @@ def load_kg_for_stress(stress: float, wire: Wire) -> float:
 
 
 PAPER_WIRE = Wire()
-"""Shibly & Söffker's NiTi wire: r = 0.19 mm, currents up to 2 A, loads 1–4 kg."""
+"""Shibly & Söffker's NiTi wire: r = 0.19 mm, currents up to 2 A, loads 1–4 kg (3–4 kg are above
+the long-life stress; the paper does not give one, so Flexinol's 172 MPa applies)."""
 
 FLEXINOL_038_70C = Wire(
     radius_m=0.19e-3,

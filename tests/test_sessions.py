@@ -122,3 +122,163 @@ def test_export_all_and_chosen_columns(tmp_path, run_cli):
     proc = run_cli("export", folder, "--out", tmp_path / "bad.csv", "--columns", "nope")
     assert proc.returncode == 2 and "unknown column" in proc.stderr
     assert not (tmp_path / "bad.csv").exists()
+
+
+# ---------------------------------------------------------------- issue 12 §8 / issue 15 pieces
+def _mode(path) -> int:
+    import os
+    import stat
+
+    return stat.S_IMODE(os.stat(path).st_mode)
+
+
+def test_every_written_file_respects_the_umask(tmp_path, run_cli):
+    """session.json, samples.csv, cycles.csv, exports and fit JSON all get 0666 & ~umask."""
+    import os
+
+    from smabench.sessions import atomic_write, atomic_write_json
+
+    old = os.umask(0o022)
+    try:
+        folder = tmp_path / "s"
+        with SessionWriter(folder, {"load_kg": 1.0}) as w:
+            w.append({"t_s": 0.0, "current_A": 0.0, "position_mm": 1.0, "cycle": 0})
+        for name in ("session.json", "samples.csv", "cycles.csv"):
+            assert _mode(folder / name) == 0o644, name
+        assert _mode(atomic_write_json(tmp_path / "a.json", {"x": 1})) == 0o644
+        assert _mode(atomic_write(tmp_path / "b.bin", b"\x00\x01")) == 0o644
+        os.umask(0o077)
+        assert _mode(atomic_write(tmp_path / "c.txt", "private")) == 0o600
+        os.umask(0o022)
+        run_cli("export", folder, "--out", tmp_path / "e.csv", check=True)
+        assert _mode(tmp_path / "e.csv") == 0o644
+    finally:
+        os.umask(old)
+    assert not [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_atomic_write_leaves_the_old_file_on_error(tmp_path):
+    from smabench.sessions import atomic_write
+
+    target = atomic_write(tmp_path / "x.txt", "old\n")
+
+    def boom(fh):
+        fh.write("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        atomic_write(target, boom)
+    assert target.read_text() == "old\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["x.txt"]
+
+
+def test_flag_bits_are_defined_once_with_the_format():
+    from smabench.drivers.displacement import FLAG_NAMES as SENSOR_BITS
+
+    import smabench.bench.runtime as runtime
+    import smabench.sessions as sessions
+
+    assert runtime.FLAG_SENSOR_INVALID is sessions.FLAG_SENSOR_INVALID
+    bits = list(sessions.FLAG_NAMES)
+    assert len(bits) == len(set(bits)) == len(SENSOR_BITS) + 4
+    assert all(b & sessions.SENSOR_FLAGS_MASK for b in SENSOR_BITS)
+    assert not any(b & sessions.SENSOR_FLAGS_MASK for b in sessions.RUNTIME_FLAG_NAMES)
+    assert sessions.describe_flags(sessions.FLAG_INTERLOCK | 0x01) == "timeout|interlock"
+    from smabench.bench.session_run import SCHEMA_VERSION
+
+    assert SCHEMA_VERSION == sessions.SCHEMA_VERSION == 2
+
+
+def test_temperature_column_new_and_old_sessions(tmp_path):
+    """Schema 2 carries temperature_C (empty without a thermocouple); schema-1 files still read."""
+    folder = tmp_path / "new"
+    with SessionWriter(folder, {}) as w:
+        w.append({"t_s": 0.0, "current_A": 1.0, "position_mm": 1.0, "temperature_C": 41.5})
+        w.append({"t_s": 0.1, "current_A": 1.0, "position_mm": 1.1})
+    s = load_session(folder)
+    assert s.columns[-1] == "temperature_C" and s.data["temperature_C"][0] == 41.5
+    assert np.isnan(s.data["temperature_C"][1]) and not s.is_thermometer_loop
+    assert json.loads((folder / "session.json").read_text())["schema_version"] == 2
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "session.json").write_text('{"schema_version": 1, "load_kg": 2}')
+    v1 = ",".join(COLUMNS[:-1])
+    (old / "samples.csv").write_text(f"{v1}\n0.0,1,1,0.5,22,2.0,,30,open_loop,0,0\n")
+    s1 = load_session(old)
+    assert "temperature_C" not in s1.data and not s1.has("temperature_C")
+    assert s1.data["position_mm"][0] == 2.0 and s1.meta["schema_version"] == 1
+
+
+def test_long_session_rotates_chunks_at_cycle_boundaries_and_reads_as_one(tmp_path, run_cli):
+    folder = tmp_path / "long"
+    rows_per_cycle, cycles = 7, 40
+    with SessionWriter(folder, {}, chunk_rows=50) as w:
+        for k in range(cycles * rows_per_cycle):
+            w.append({"t_s": k * 0.01, "current_A": 1.0, "position_mm": float(k),
+                      "cycle": k // rows_per_cycle, "mode": "open_loop", "flags": k % 3 == 0})
+    from smabench.sessions import iter_sample_chunks, sample_files
+
+    files = sample_files(folder)
+    assert files[0].name == "samples.csv" and files[1].name == "samples-00001.csv"
+    assert len(files) == 5  # 50 rows per chunk, cut at the first cycle boundary after it
+    per_file = [set(read_samples_csv(f)["cycle"].tolist()) for f in files]
+    assert sum(len(c) for c in per_file) == cycles  # no cycle is split over two files
+    assert all(50 <= len(read_samples_csv(f)["t_s"]) < 57 for f in files[:-1])
+    s = load_session(folder)
+    np.testing.assert_array_equal(s.data["position_mm"], np.arange(cycles * rows_per_cycle))
+    assert sum(len(c["t_s"]) for c in iter_sample_chunks(folder, ["t_s"])) == len(s)
+    out = tmp_path / "all.csv"
+    run_cli("export", folder, "--out", out, check=True)
+    assert len(out.read_text().splitlines()) == cycles * rows_per_cycle + 1
+    summary = read_samples_csv(folder / "cycles.csv")
+    np.testing.assert_array_equal(summary["cycle"], np.arange(cycles))
+    np.testing.assert_array_equal(summary["rows"], rows_per_cycle)
+    np.testing.assert_array_equal(summary["position_start_mm"], np.arange(cycles) * 7)
+    np.testing.assert_array_equal(summary["position_max_mm"], np.arange(cycles) * 7 + 6)
+    assert summary["flagged_rows"].sum() == np.count_nonzero(np.arange(280) % 3 == 0)
+    meta = json.loads((folder / "session.json").read_text())
+    assert meta["sample_files"] == [f.name for f in files]
+
+
+def test_cycle_summary_is_live_while_recording(tmp_path):
+    folder = tmp_path / "live"
+    w = SessionWriter(folder, {})
+    for k in range(30):
+        w.append({"t_s": float(k), "current_A": 1.0, "position_mm": 1.0, "cycle": k // 10})
+    lines = (folder / "cycles.csv").read_text().splitlines()
+    assert len(lines) == 3  # header + cycles 0 and 1 done; cycle 2 still running
+    w.close()
+    assert len((folder / "cycles.csv").read_text().splitlines()) == 4
+
+
+def test_write_session_arrays_chunk_and_summarise_like_rows(tmp_path):
+    n = 1000
+    data = {"t_s": np.arange(n) * 0.01, "current_A": np.ones(n),
+            "position_mm": np.sin(np.arange(n) / 50), "cycle": np.arange(n) // 90,
+            "mode": np.array(["open_loop"] * n, dtype=object)}
+    from smabench.sessions import SessionWriter as W
+
+    folder = tmp_path / "arr"
+    w = W(folder, {}, chunk_rows=200)
+    w.append_arrays(data)
+    w.close()
+    s = load_session(folder)
+    np.testing.assert_allclose(s.data["position_mm"], data["position_mm"], atol=1e-9)
+    summary = read_samples_csv(folder / "cycles.csv")
+    assert summary["rows"].sum() == n and len(summary["rows"]) == 12
+    assert (folder / "samples-00001.csv").exists()
+
+
+def test_fast_and_strict_readers_agree(tmp_path):
+    from smabench.sessions import _read_samples_fast, _read_samples_strict
+
+    f = tmp_path / "x.csv"
+    f.write_text("t_s,current_A,position_mm,mode,flags\n0,,1.5,pid,0\n1,2,,ff,\n,3,2.5,,1\n2,4")
+    fast = _read_samples_fast(f, True, None)
+    strict = _read_samples_strict(f, True, None)
+    assert fast is not None and list(fast) == list(strict)
+    for c in strict:
+        if c == "mode":
+            assert list(fast[c]) == list(strict[c]) == ["pid", "ff", ""]
+        else:
+            np.testing.assert_array_equal(fast[c], strict[c])

@@ -7,11 +7,8 @@ and nothing half-written.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -40,13 +37,9 @@ USER_ERRORS: tuple[type[BaseException], ...] = (CliError, ValueError, OSError)
 
 
 def _write_json_atomic(path: str | Path, obj: object) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        json.dump(obj, fh, indent=2)
-        fh.write("\n")
-    os.replace(tmp, path)
+    from smabench.sessions import atomic_write_json
+
+    atomic_write_json(path, obj)
 
 
 def _positive(kind: type = float) -> Callable[[str], float]:
@@ -281,11 +274,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 # --------------------------------------------------------------------------- export
 def cmd_export(args: argparse.Namespace) -> int:
-    from smabench.sessions import export_csv, load_session
+    from smabench.sessions import export_csv
 
-    session = load_session(args.session)
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else None
-    n = export_csv(session, args.out, columns)
+    n = export_csv(args.session, args.out, columns)  # streamed chunk by chunk: one table
     print(f"{n} rows written: {args.out}")
     return 0
 

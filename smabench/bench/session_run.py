@@ -19,11 +19,11 @@ from typing import Any
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
 from smabench.physics.wire import PRESETS
 from smabench.protocols import Protocol, ProtocolSettings
-from smabench.sessions import SessionWriter
+from smabench.sessions import SCHEMA_VERSION, SessionWriter
 
 log = logging.getLogger(__name__)
 
-SCHEMA_VERSION = 1
+__all__ = ["SCHEMA_VERSION", "RunSettings", "run_session", "session_meta"]
 MAX_LOAD_KG = 10.0
 
 

@@ -39,7 +39,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 lint: venv
-	$(VENV)/bin/ruff check smabench drivers tests
+	$(VENV)/bin/ruff check smabench drivers tests firmware/hardware sessions/samples
 
 test-python: venv
 	$(VENV)/bin/pytest -q

@@ -16,7 +16,7 @@ from smabench.control.controller import MODES
 from smabench.control.factory import kinetic_lag_for, loop_model_for
 from smabench.control.model import InverseLoop
 from smabench.control.pid import PID, gains_for_load
-from smabench.control.sim import run_closed_loop
+from smabench.bench.offline import run_closed_loop
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
 from smabench.protocols import ProtocolSettings

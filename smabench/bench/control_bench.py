@@ -12,6 +12,11 @@ Figures, over the samples after the lead-in: RMS and maximum of position − set
 the wire's stroke, the model's cold − hot position), and for steps the mean settling time after
 each setpoint edge (error inside ±2 % of the stroke from then until the next edge), with the
 number of edges that settled.
+
+``--offline`` runs the same cases in-process instead (:mod:`smabench.bench.offline`: the
+runtime's tick on a simulated clock against the simulated devices), at the loop period the mock
+run would have in device time (``speed / rate_hz``, 12.5 ms by default, or ``--periods-ms``):
+no transports and no wall clock, so its figures do not depend on the machine.
 """
 
 from __future__ import annotations
@@ -101,6 +106,31 @@ def run_case(case: Case, speed: float = 5.0, rate_hz: float = 400.0) -> dict:
             "missed": result.missed_deadlines, "samples": result.samples}  # fmt: skip
 
 
+def run_case_offline(case: Case, period_s: float = 0.0125) -> dict:
+    """One case on the offline closed loop at loop period ``period_s`` (device time)."""
+    from smabench.bench.offline import run_closed_loop
+    from smabench.control import ControllerSettings, build_controller
+    from smabench.physics.effects import Effects
+    from smabench.physics.wire import PAPER_WIRE
+    from smabench.protocols import ProtocolSettings
+
+    proto = ProtocolSettings(
+        name=case.kind, cycles=case.cycles, period_s=case.period_s, amplitude_mm=0.8
+    )
+    controller = build_controller(
+        proto, ControllerSettings(mode=case.controller), case.load_kg, PAPER_WIRE, 2.0
+    )
+    effects = Effects.from_strings([case.effect]) if case.effect else None
+    duration_s = controller.reference.duration_s + period_s
+    tr = run_closed_loop(controller, case.load_kg, duration_s, dt_s=period_s, effects=effects)
+    if tr.status != "completed":
+        raise RuntimeError(f"{case}: offline session ended {tr.status}: {tr.reason}")
+    data = {"t_s": tr.t_s, "position_mm": tr.position_mm, "setpoint_mm": tr.setpoint_mm}
+    lo, hi = controller.ff.inverse.reachable_mm(0.0)
+    return {**case.__dict__, **figures(data, controller.reference, hi - lo),
+            "missed": 0, "samples": int(tr.t_s.size), "period_ms": period_s * 1e3}  # fmt: skip
+
+
 def figures(data: dict, reference, stroke_mm: float) -> dict:
     """RMS/max error and step settling from a recorded session."""
     t = np.asarray(data["t_s"], dtype=float)
@@ -157,21 +187,27 @@ def format_table(rows: list[dict]) -> str:
     lines.append("")
     lines.append("FF+PID RMS / PID RMS (target ≤ 0.5 on the sines, ≤ 1 on steps):")
     by = {(r["ref"], r["load_kg"], r["effect"], r["controller"]): r for r in rows}
+    met = total = 0
     for (ref, load, eff, c), r in by.items():
         if c != "ffpid" or (ref, load, eff, "pid") not in by:
             continue
         ratio = r["rms_mm"] / by[(ref, load, eff, "pid")]["rms_mm"]
         target = 0.5 if ref.startswith("sine") else 1.0
+        total += 1
+        met += ratio <= target
         lines.append(
             f"  {ref:10s} {load:4.0f} kg {'latent' if eff else 'nominal':8s} {ratio:5.2f}"
             f"  {'met' if ratio <= target else 'NOT met'}"
         )
+    lines.append(f"{met} of {total} targets met")
     return "\n".join(lines)
 
 
 def _run(args_case):
-    case, speed, rate = args_case
+    case, speed, rate, offline_period_s = args_case
     try:
+        if offline_period_s:
+            return run_case_offline(case, offline_period_s)
         return run_case(case, speed, rate)
     except Exception as exc:  # keep the other cases going; report the failure
         log.exception("case %s failed", case)
@@ -181,11 +217,14 @@ def _run(args_case):
 def bench_control(
     cases: list[Case], speed: float = 5.0, rate_hz: float = 400.0, jobs: int = 1,
     progress: Path | None = None, table_out: Path | None = None,
+    offline_period_s: float | None = None,
 ) -> list[dict]:  # fmt: skip
-    """Run the cases (``jobs`` at a time, each with its own mock); rows in case order."""
+    """Run the cases (``jobs`` at a time, each with its own mock, or offline at
+    ``offline_period_s``); rows in case order."""
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=jobs) as pool:
-        for row in pool.map(_run, [(c, speed, rate_hz) for c in cases]):
+        args = [(c, speed, rate_hz, offline_period_s) for c in cases]
+        for row in pool.map(_run, args):
             rows.append(row)
             if "error" in row:
                 print(f"  {row['ref']} {row['load_kg']:g} kg {row['controller']}: {row['error']}",
@@ -206,17 +245,34 @@ def cmd_bench_control(args: argparse.Namespace) -> int:
     refs = tuple(args.refs) if args.refs else tuple(BENCHMARK_REFERENCES)
     effects = ("",) if args.nominal_only else EFFECTS
     cases = all_cases(loads, refs, effects)
-    print(f"bench control: {len(cases)} sessions on the mock at {args.speed:g}×, "
-          f"{args.rate_hz:g} Hz loop, {args.jobs} at a time", flush=True)  # fmt: skip
-    rows = bench_control(cases, args.speed, args.rate_hz, args.jobs,
-                         Path(args.json) if args.json else None,
-                         Path(args.out) if args.out else None)  # fmt: skip
-    good = [r for r in rows if "error" not in r]
-    table = format_table(good)
-    print(table)
+    if not args.offline:
+        print(f"bench control: {len(cases)} sessions on the mock at {args.speed:g}×, "
+              f"{args.rate_hz:g} Hz loop, {args.jobs} at a time", flush=True)  # fmt: skip
+        periods: list[float | None] = [None]
+    else:
+        periods = [p / 1e3 for p in args.periods_ms] if args.periods_ms else [
+            args.speed / args.rate_hz]
+        if not all(0.0005 <= p <= 1.0 for p in periods):
+            raise ValueError("offline loop periods must be in 0.5 … 1000 ms")
+    ok = True
+    tables = []
+    for period in periods:
+        if period is not None:
+            print(f"bench control --offline: {len(cases)} sessions in-process, loop period "
+                  f"{period * 1e3:g} ms (device time), {args.jobs} at a time", flush=True)
+        rows = bench_control(cases, args.speed, args.rate_hz, args.jobs,
+                             Path(args.json) if args.json else None,
+                             Path(args.out) if args.out else None, period)  # fmt: skip
+        good = [r for r in rows if "error" not in r]
+        table = format_table(good)
+        if period is not None:
+            table = f"offline, loop period {period * 1e3:g} ms\n" + table
+        print(table)
+        tables.append(table)
+        ok = ok and len(good) == len(rows)
     if args.out:
-        Path(args.out).write_text(table + "\n", encoding="utf-8")
-    return 0 if len(good) == len(rows) else 1
+        Path(args.out).write_text("\n\n".join(tables) + "\n", encoding="utf-8")
+    return 0 if ok else 1
 
 
 def add_bench_control(bsub) -> None:
@@ -230,6 +286,14 @@ def add_bench_control(bsub) -> None:
     b.add_argument("--loads", type=float, nargs="+", help="loads, kg (1 2 4)")
     b.add_argument("--refs", nargs="+", choices=list(BENCHMARK_REFERENCES), help="references (all)")
     b.add_argument("--nominal-only", action="store_true", help="skip the latent-heat plant")
+    b.add_argument(
+        "--offline", action="store_true",
+        help="in-process on a simulated clock (the runtime's tick, simulated devices), no mock",
+    )  # fmt: skip
+    b.add_argument(
+        "--periods-ms", type=float, nargs="+",
+        help="--offline: loop periods, ms of device time (default speed / rate, 12.5)",
+    )  # fmt: skip
     b.add_argument("--out", help="also write the table to this file")
     b.add_argument("--json", help="write the rows as JSON (updated after every case)")
     b.set_defaults(func=cmd_bench_control)

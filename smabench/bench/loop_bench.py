@@ -11,24 +11,16 @@ from __future__ import annotations
 
 import logging
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from smabench.bench.headless import MockProcess, open_devices
 from smabench.bench.session_run import RunSettings, run_session
+from smabench.commands import CommandStep
 from smabench.protocols import ProtocolSettings
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class LoopStep:
-    current_set_a: float
-    cycle: int
-    phase: str
-    done: bool = False
 
 
 class TimedSteps:
@@ -37,10 +29,10 @@ class TimedSteps:
     def __init__(self, duration_s: float) -> None:
         self.duration_s = duration_s
 
-    def update(self, t_s: float, position_mm: float) -> LoopStep:
+    def update(self, t_s: float, position_mm: float) -> CommandStep:
         if t_s >= self.duration_s:
-            return LoopStep(0.0, 0, "done", True)
-        return LoopStep(0.3 if int(t_s / 2.0) % 2 == 0 else 0.9, 0, "steps")
+            return CommandStep(0.0, 0, "done", done=True)
+        return CommandStep(0.3 if int(t_s / 2.0) % 2 == 0 else 0.9, 0, "steps")
 
 
 def loop_timing(rate_hz: float, firmware: str, duration_s: float, sensor: str = "tcp") -> dict:

@@ -1,11 +1,12 @@
-"""Per-load gain tuning on the offline closed loop (:mod:`smabench.control.sim`).
+"""Per-load gain tuning on the offline closed loop (:mod:`smabench.bench.offline`: the bench
+runtime's own tick on a simulated clock against the in-process simulated devices).
 
 The gains of both PIDs (the ``pid`` law in W/mm …, FF+PID's in mm/mm …) are chosen the same
 way, so neither law is favoured: for one load, a grid of (kp, ki, kd) is run on the references
 of ``smabench bench control`` (step, staircase, 20 s and 10 s sine) against the nominal plant
 (no effects: the plant the controllers know), and the gains with the lowest mean RMS tracking
 error (% of stroke, the benchmark's figure) win. The latent-heat plant is never used for
-tuning: it is the robustness test. Run ``python -m smabench.control.tuning --law pid --load 2``
+tuning: it is the robustness test. Run ``python -m smabench.bench.tuning --law pid --load 2``
 (JSON lines, best last); :data:`smabench.control.pid.GAIN_TABLE` and
 :data:`~smabench.control.pid.FFPID_GAIN_TABLE` hold the results. FF+PID's hold gains
 (``--law ffpid_hold``, :data:`~smabench.control.pid.FFPID_HOLD_GAIN_TABLE`) are the exception:
@@ -22,10 +23,10 @@ import logging
 
 import numpy as np
 
+from smabench.bench.offline import run_closed_loop
 from smabench.control.factory import ControllerSettings, build_controller
 from smabench.control.pid import PIDGains
 from smabench.control.reference import BENCHMARK_REFERENCES
-from smabench.control.sim import run_closed_loop
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
 from smabench.protocols import ProtocolSettings
@@ -81,7 +82,7 @@ def grid_search(
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m smabench.control.tuning",
+    p = argparse.ArgumentParser(prog="python -m smabench.bench.tuning",
                                 description=__doc__.split("\n\n")[0])  # fmt: skip
     p.add_argument("--law", choices=("pid", "ffpid", "ffpid_hold"), default="pid")
     p.add_argument("--load", type=float, default=2.0, help="load, kg")

@@ -36,7 +36,6 @@ from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.drivers.mock.plant_link import PlantLink
 from smabench.drivers.mock.serial_device import SerialDevice
 from smabench.drivers.modbus_sim import SensorServer
-
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE, Wire
 
@@ -166,14 +165,16 @@ class MockBench:
         rtu: bool = True,
         noise_mm: float = 0.002,
         seed: int = 0,
+        trace: str | Path | None = None,
     ) -> None:
+        """``trace``: a CSV path for what the plant really got (:class:`PlantTrace`)."""
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
             raise ValueError(f"speed must be in (0, 100], got {speed}")
         if firmware == "emulated" and speed != 1.0:
             raise ValueError("the emulated firmware runs in real time only (speed 1)")
-        self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed)
+        self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
         self.speed = speed
         self.firmware = firmware
         self.tcp_port = tcp_port
@@ -257,6 +258,7 @@ class MockBench:
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None
+        self.link.close()
 
     def __enter__(self) -> MockBench:
         self.start()

@@ -43,6 +43,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         firmware=args.firmware,
         tcp_port=args.tcp_port,
         seed=args.seed,
+        trace=args.trace,
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -188,6 +189,11 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
         help="current driver: the Python firmware model, or the real firmware in simavr",
     )
     s.add_argument(f"--{prefix}seed", type=int, default=0, help="sensor noise seed")
+    s.add_argument(
+        f"--{prefix}trace",
+        metavar="FILE.csv",
+        help="write what the plant really got (t_s, current_A, temperature_C, position_mm)",
+    )
 
 
 # --------------------------------------------------------------------------- smabench run
@@ -328,6 +334,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             ]
             for e in args.mock_effect:
                 mock_args += ["--effect", e]
+            if args.mock_trace:
+                mock_args += ["--trace", str(Path(args.mock_trace).resolve())]
             mock = MockProcess(mock_args)
             port = mock.ports.driver
             spec = mock.ports.sensor_rtu if args.mock_sensor == "rtu" else mock.ports.sensor_tcp

@@ -41,11 +41,11 @@ def cmd_gui(args: argparse.Namespace) -> int:
         previous_hook(*exc_info)
 
     sys.excepthook = on_crash
-    if args.mock or args.run_demo:
+    if args.mock and not args.run_demo:
         win.connect_devices()
     if args.run_demo:
-        win.load_kg.setValue(2.0)
-        win.cycles.setValue(3)
+        win.fields["load_kg"].set_value(2.0)
+        win.fields["cycles"].set_value(3)
         QtCore.QTimer.singleShot(100, win.start_experiment)
     started = time.monotonic()
     if args.screenshot or args.quit_after:

@@ -11,6 +11,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import queue
 import subprocess
 import sys
@@ -135,9 +136,17 @@ class RuntimeLink:
     def start(self, settings: dict[str, Any]) -> None:
         self.send("start " + json.dumps(settings, default=_json_default))
 
-    def estop(self) -> None:
-        with contextlib.suppress(ConnectionError, OSError, ValueError):
-            self.send("estop")
+    def estop(self) -> bool:
+        """``estop`` down the pipe in one system call (no Python buffering on the way; every
+        other command is flushed whole, so lines never interleave). False when the process is
+        gone or the pipe is closed."""
+        if not self.alive:
+            return False
+        try:
+            os.write(self.proc.stdin.fileno(), b"estop\n")
+            return True
+        except (OSError, ValueError):
+            return False
 
     def close(self, timeout_s: float = 5.0) -> None:
         if self.alive:

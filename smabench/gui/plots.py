@@ -24,6 +24,14 @@ def thin(n: int, limit: int) -> slice:
     return slice(None, None, max(1, int(np.ceil(n / limit))))
 
 
+def label_axis(plot, side: str, text: str, unit: str) -> None:
+    """An axis label with its unit as written ("position (mm)"): pyqtgraph's automatic SI
+    prefix would turn mm into "mmm" or "kmm"."""
+    axis = plot.getAxis(side)
+    axis.enableAutoSIPrefix(False)
+    plot.setLabel(side, f"{text} ({unit})")
+
+
 def keep_range(plot, axis: str, lo: float, hi: float, pad: float = 0.08) -> None:
     """Set a view range only when the data leave it or fill less than half of it.
 
@@ -45,8 +53,8 @@ class LoopPlot(pg.PlotWidget):
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
-        self.setLabel("bottom", "estimated wire temperature", units="°C")
-        self.setLabel("left", "position", units="mm")
+        label_axis(self.plotItem, "bottom", "estimated wire temperature", "°C")
+        label_axis(self.plotItem, "left", "position", "mm")
         self.showGrid(x=False, y=False)
         self.addLegend(offset=(-10, 10))
         self.current = self.plot([], [], pen=pg.mkPen(BRIGHT, width=1), name="current cycle")
@@ -128,7 +136,7 @@ class TimePlots(pg.GraphicsLayoutWidget):
         for p, label, unit in ((self.p_current, "current", "A"),
                                (self.p_temp, "temperature", "°C"),
                                (self.p_pos, "position", "mm")):  # fmt: skip
-            p.setLabel("left", label, units=unit)
+            label_axis(p, "left", label, unit)
             p.showGrid(x=False, y=False)
             p.setDownsampling(auto=True, mode="peak")
             p.setClipToView(True)
@@ -136,7 +144,7 @@ class TimePlots(pg.GraphicsLayoutWidget):
             p.disableAutoRange()
         self.p_temp.setXLink(self.p_current)
         self.p_pos.setXLink(self.p_current)
-        self.p_pos.setLabel("bottom", "time", units="s")
+        label_axis(self.p_pos, "bottom", "time", "s")
         self.p_current.hideAxis("bottom")
         self.p_temp.hideAxis("bottom")
         self.c_set = self.p_current.plot(pen=pg.mkPen((150, 150, 150), width=1), name="set")

@@ -1,9 +1,16 @@
-"""The operator's main window: connection, experiment and controller panels, E-STOP, live plots,
-sessions.
+"""The operator's main window.
+
+Layout: a run bar that never scrolls (E-STOP, state, Connect, Start/Pause/Stop, progress, the
+latched e-stop banner, the message line, live readouts); below it the settings (tabs:
+Experiment, Limits, Controller, Connection) beside the live plots, the sessions list and the
+replay view.
 
 The bench runtime runs in its own process (:class:`~smabench.gui.link.RuntimeLink`); this window
-only sends commands and draws what the runtime streams, from a 30 Hz timer. If the window freezes,
-the loop does not notice; if it dies, the runtime sees its pipe close and e-stops.
+sends commands and draws what the runtime streams, from a 30 Hz timer. The E-STOP (button, or
+Esc/F12/Ctrl+E anywhere, :mod:`smabench.gui.estop`) writes to the runtime's pipe first, before
+anything is drawn; the runtime turns the driver's output off from outside its loop. Fits,
+exports and file reading run off the GUI thread (:class:`~smabench.gui.sessions_view.Jobs`).
+The window's state is :class:`~smabench.gui.state.StateMachine`'s; controls follow it.
 """
 
 from __future__ import annotations
@@ -16,27 +23,41 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from smabench.gui import words
+from smabench.gui.estop import KEY_NAMES, EStopGuard
+from smabench.gui.fields import FieldSpec, NoWheelCombo, NumberField
 from smabench.gui.link import RuntimeLink, SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
+from smabench.gui.sessions_view import (
+    Jobs,
+    ReplayView,
+    SessionRow,
+    fit_session,
+    read_session_rows,
+    shown_cycle,
+)
+from smabench.gui.specs import (
+    GAIN_LAWS,
+    field_specs,
+    fields_for_protocol,
+    needs_high_stress_confirmation,
+)
+from smabench.gui.state import IN_SESSION, NOT_CONNECTED, State, StateMachine, controls_for
 from smabench.protocols import PROTOCOL_NAMES, REFERENCE_NAMES
 
 log = logging.getLogger(__name__)
 
 FRAME_MS = 33
 MODES = (("open_loop", "Open loop"), ("pid", "PID"), ("ff", "FF"), ("ffpid", "FF+PID"))
+MODE_LABEL = dict(MODES)
 MODELS = ("1", "2", "sigmoid", "preisach")
-
-
-def _spin(lo: float, hi: float, value: float, step: float, decimals: int = 2,
-          suffix: str = "") -> QtWidgets.QDoubleSpinBox:  # fmt: skip
-    w = QtWidgets.QDoubleSpinBox()
-    w.setRange(lo, hi)
-    w.setDecimals(decimals)
-    w.setSingleStep(step)
-    w.setValue(value)
-    if suffix:
-        w.setSuffix(" " + suffix)
-    return w
+STATE_TEXT = {
+    State.DISCONNECTED: "Not connected", State.CONNECTING: "Connecting …",
+    State.IDLE: "Connected · idle", State.STARTING: "Starting …", State.RUNNING: "Running",
+    State.PAUSED: "Paused (output off)", State.ESTOPPED: "E-STOP LATCHED",
+    State.ERROR: "Not connected",
+}  # fmt: skip
+LOST_STATUSES = 2  # status lines in a row with the driver link down while idle = device lost
 
 
 class MainWindow(QtWidgets.QMainWindow):
@@ -48,176 +69,193 @@ class MainWindow(QtWidgets.QMainWindow):
         super().__init__()
         self.setWindowTitle("smabench")
         self.sessions_dir = Path(sessions_dir)
+        self.sm = StateMachine()
         self.link: RuntimeLink | None = None
-        self.link_load_kg: float | None = None
+        self.link_config: dict[str, Any] | None = None
+        self.pending_start: dict[str, Any] | None = None
+        self.session_folder: Path | None = None  # the running session's folder
+        self.session_controller = False  # the running session has a controller
         self.buffer = SampleBuffer()
         self.status: dict[str, Any] = {}
         self.last_end: dict[str, Any] | None = None
         self.last_error = ""
+        self.last_estop: dict[str, Any] | None = None  # the runtime's X report
+        self.estop_time: float | None = None
         self.frame_times_s: list[float] = []
-        self.custom_gains: list[float] | None = None  # None: the per-load gain table
+        self.custom_gains: dict[str, list[float] | None] = {law: None for law, *_ in GAIN_LAWS}
+        self._link_down = 0
+        self._paused_at: float | None = None
+        self._paused_total_s = 0.0
+        self._remaining_text = "–"
+        self.jobs = Jobs()
+        self.specs = field_specs()
+        self.fields: dict[str, NumberField] = {}
         self._build(mock_speed)
+        self.guard = EStopGuard(self.estop, self)
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.on_frame)
         self.timer.start(FRAME_MS)
         self.refresh_sessions()
-        self._set_running(False)
+        self._apply_state()
 
     # ------------------------------------------------------------------ layout
+    def _field(self, name: str, **override: Any) -> NumberField:
+        spec = self.specs[name]
+        if override:
+            spec = FieldSpec(**{**spec.__dict__, **override})
+        w = NumberField(spec)
+        self.fields[name] = w
+        return w
+
     def _build(self, mock_speed: float) -> None:
-        self.estop_button = QtWidgets.QPushButton("E-STOP  (Esc)")
-        self.estop_button.setMinimumHeight(70)
-        self.estop_button.setStyleSheet(
-            "QPushButton { background: #c62828; color: white; font-size: 22px; font-weight: bold;"
-            " border-radius: 8px; } QPushButton:pressed { background: #8e0000; }"
-        )
-        self.estop_button.clicked.connect(self.estop)
-        for key in ("Escape", "Ctrl+E", "F12"):
-            sc = QtGui.QShortcut(QtGui.QKeySequence(key), self)
-            sc.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
-            sc.activated.connect(self.estop)
-
-        left = QtWidgets.QWidget()
-        lv = QtWidgets.QVBoxLayout(left)
-        lv.addWidget(self.estop_button)
-        lv.addWidget(self._connection_panel(mock_speed))
-        lv.addWidget(self._experiment_panel())
-        lv.addWidget(self._controller_panel())
-        lv.addStretch(1)
-        scroll = QtWidgets.QScrollArea()
-        scroll.setWidget(left)
-        scroll.setWidgetResizable(True)
-        scroll.setMinimumWidth(340)
-
+        central = QtWidgets.QWidget()
+        outer = QtWidgets.QVBoxLayout(central)
+        outer.setContentsMargins(6, 6, 6, 6)
+        outer.setSpacing(4)
+        outer.addWidget(self._run_bar())
+        self.settings_tabs = QtWidgets.QTabWidget()
+        for title, panel in (("Experiment", self._experiment_panel()),
+                             ("Limits", self._limits_panel()),
+                             ("Controller", self._controller_panel()),
+                             ("Connection", self._connection_panel(mock_speed))):  # fmt: skip
+            scroll = QtWidgets.QScrollArea()
+            scroll.setWidget(panel)
+            scroll.setWidgetResizable(True)
+            scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
+            self.settings_tabs.addTab(scroll, title)
+        self.settings_tabs.setMinimumWidth(360)
         self.loop_plot = LoopPlot()
         self.time_plots = TimePlots()
         live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         live.addWidget(self.loop_plot)
         live.addWidget(self.time_plots)
         live.setSizes([500, 400])
+        self.replay = ReplayView()
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(live, "Live")
         self.tabs.addTab(self._sessions_panel(), "Sessions")
-
+        self.tabs.addTab(self.replay, "Replay (recorded)")
         split = QtWidgets.QSplitter()
-        split.addWidget(scroll)
+        split.addWidget(self.settings_tabs)
         split.addWidget(self.tabs)
         split.setStretchFactor(1, 1)
-        self.setCentralWidget(split)
+        split.setSizes([400, 1000])
+        outer.addWidget(split, 1)
+        self.setCentralWidget(central)
         self.health = QtWidgets.QLabel("not connected")
         self.statusBar().addPermanentWidget(self.health)
         self.resize(1400, 900)
+        self._show_protocol_fields()
+        self._show_device_fields()
 
-    def _connection_panel(self, mock_speed: float) -> QtWidgets.QGroupBox:
-        box = QtWidgets.QGroupBox("Connection")
-        form = QtWidgets.QFormLayout(box)
-        self.use_mock = QtWidgets.QRadioButton("Built-in mock bench")
-        self.use_real = QtWidgets.QRadioButton("Real devices")
-        self.use_mock.setChecked(True)
-        form.addRow(self.use_mock)
-        self.mock_speed = _spin(1, 10, mock_speed, 1, 0, "×")
-        self.mock_effect = QtWidgets.QLineEdit()
-        self.mock_effect.setPlaceholderText("e.g. latent_heat=24000 (optional)")
-        form.addRow("speed", self.mock_speed)
-        form.addRow("plant effect", self.mock_effect)
-        form.addRow(self.use_real)
-        self.serial_port = QtWidgets.QComboBox()
-        self.serial_port.setEditable(True)
-        refresh = QtWidgets.QPushButton("↻")
-        refresh.setMaximumWidth(30)
-        refresh.clicked.connect(self.refresh_ports)
+    def _run_bar(self) -> QtWidgets.QWidget:
+        bar = QtWidgets.QFrame()
+        bar.setFrameShape(QtWidgets.QFrame.Shape.StyledPanel)
+        v = QtWidgets.QVBoxLayout(bar)
+        v.setContentsMargins(6, 6, 6, 6)
+        v.setSpacing(4)
         row = QtWidgets.QHBoxLayout()
-        row.addWidget(self.serial_port, 1)
-        row.addWidget(refresh)
-        form.addRow("driver port", row)
-        self.sensor_kind = QtWidgets.QComboBox()
-        self.sensor_kind.addItems(["TCP", "RTU"])
-        self.sensor_host = QtWidgets.QLineEdit("192.168.0.10")
-        self.sensor_tcp_port = QtWidgets.QSpinBox()
-        self.sensor_tcp_port.setRange(1, 65535)
-        self.sensor_tcp_port.setValue(502)
-        self.sensor_rtu_port = QtWidgets.QComboBox()
-        self.sensor_rtu_port.setEditable(True)
-        self.sensor_baud = QtWidgets.QComboBox()
-        self.sensor_baud.addItems(["9600", "19200", "38400", "57600", "115200"])
-        self.sensor_baud.setCurrentText("115200")
-        self.sensor_unit = QtWidgets.QSpinBox()
-        self.sensor_unit.setRange(1, 247)
-        self.sensor_map = QtWidgets.QComboBox()
-        from smabench.drivers.displacement import available_maps
-
-        self.sensor_map.addItems(available_maps())
-        self.sensor_map.setCurrentText("generic-rs485-laser")
-        form.addRow("sensor", self.sensor_kind)
-        form.addRow("TCP host", self.sensor_host)
-        form.addRow("TCP port", self.sensor_tcp_port)
-        form.addRow("RTU port", self.sensor_rtu_port)
-        form.addRow("RTU baud", self.sensor_baud)
-        form.addRow("unit id", self.sensor_unit)
-        form.addRow("register map", self.sensor_map)
+        self.estop_button = QtWidgets.QPushButton(f"E-STOP\n{KEY_NAMES}")
+        self.estop_button.setMinimumSize(190, 64)
+        self.estop_button.setToolTip(f"Output off at once ({KEY_NAMES}, from anywhere)")
+        self.estop_button.setStyleSheet(
+            "QPushButton { background: #c62828; color: white; font-size: 20px; font-weight: bold;"
+            " border-radius: 8px; } QPushButton:pressed { background: #8e0000; }"
+        )
+        self.estop_button.pressed.connect(self.estop)  # on press, not on release
+        row.addWidget(self.estop_button)
+        self.state_label = QtWidgets.QLabel()
+        self.state_label.setMinimumWidth(150)
+        self.state_label.setStyleSheet("font-size: 15px; font-weight: bold;")
+        row.addWidget(self.state_label)
         self.connect_button = QtWidgets.QPushButton("Connect")
         self.connect_button.clicked.connect(self.toggle_connection)
-        form.addRow(self.connect_button)
-        self.refresh_ports()
-        return box
-
-    def _experiment_panel(self) -> QtWidgets.QGroupBox:
-        box = QtWidgets.QGroupBox("Experiment")
-        form = QtWidgets.QFormLayout(box)
-        self.load_kg = _spin(0.1, 10, 2.0, 0.5, 2, "kg")
-        self.protocol = QtWidgets.QComboBox()
-        self.protocol.addItems(PROTOCOL_NAMES)
-        self.cycles = QtWidgets.QSpinBox()
-        self.cycles.setRange(1, 10000)
-        self.cycles.setValue(3)
-        self.current_a = _spin(0, 2.0, 1.4, 0.1, 2, "A")
-        self.heat_s = _spin(0.1, 600, 3.0, 0.5, 1, "s")
-        self.cool_s = _spin(0.5, 3600, 15.0, 1, 1, "s")
-        self.partial_cool_s = _spin(0.1, 600, 2.0, 0.5, 1, "s")
-        self.inner_heat_s = _spin(0.05, 60, 0.4, 0.1, 2, "s")
-        self.inner_cool_s = _spin(0.05, 60, 0.8, 0.1, 2, "s")
-        # position references (step, staircase, sine, triangle) under a closed-loop law
-        self.amplitude_mm = _spin(0.05, 5, 0.8, 0.1, 2, "mm")
-        self.offset_mm = _spin(-0.01, 60, -0.01, 0.1, 2, "mm")
-        self.offset_mm.setSpecialValueText("middle of the stroke")
-        self.period_s = _spin(1, 3600, 20, 1, 1, "s")
-        for label, w in (("load", self.load_kg), ("protocol", self.protocol),
-                         ("cycles", self.cycles), ("current", self.current_a),
-                         ("heat time", self.heat_s), ("max cool time", self.cool_s),
-                         ("incomplete: cool", self.partial_cool_s),
-                         ("inner: heat", self.inner_heat_s),
-                         ("inner: cool", self.inner_cool_s),
-                         ("reference amplitude", self.amplitude_mm),
-                         ("reference offset", self.offset_mm),
-                         ("reference period", self.period_s)):  # fmt: skip
-            form.addRow(label, w)
-        buttons = QtWidgets.QHBoxLayout()
         self.start_button = QtWidgets.QPushButton("Start")
         self.pause_button = QtWidgets.QPushButton("Pause")
-        self.pause_button.setCheckable(True)
         self.stop_button = QtWidgets.QPushButton("Stop")
         self.start_button.clicked.connect(self.start_experiment)
-        self.pause_button.toggled.connect(self.pause_experiment)
+        self.pause_button.clicked.connect(self.toggle_pause)
         self.stop_button.clicked.connect(self.stop_experiment)
-        for b in (self.start_button, self.pause_button, self.stop_button):
-            buttons.addWidget(b)
-        form.addRow(buttons)
+        for b in (self.connect_button, self.start_button, self.pause_button, self.stop_button):
+            b.setMinimumSize(92, 44)
+            row.addWidget(b)
+        prog = QtWidgets.QVBoxLayout()
         self.progress = QtWidgets.QProgressBar()
         self.progress.setRange(0, 1000)
-        form.addRow(self.progress)
+        self.progress.setMinimumWidth(180)
         self.times = QtWidgets.QLabel("elapsed –   remaining –")
-        form.addRow(self.times)
-        self.end_label = QtWidgets.QLabel("")
-        self.end_label.setWordWrap(True)
-        form.addRow(self.end_label)
-        return box
+        prog.addWidget(self.progress)
+        prog.addWidget(self.times)
+        row.addLayout(prog, 1)
+        v.addLayout(row)
+        self.banner = QtWidgets.QFrame()
+        self.banner.setStyleSheet("QFrame { background: #c62828; } QLabel { color: white; "
+                                  "font-size: 15px; font-weight: bold; }")  # fmt: skip
+        bl = QtWidgets.QHBoxLayout(self.banner)
+        bl.setContentsMargins(8, 4, 8, 4)
+        self.banner_label = QtWidgets.QLabel()
+        self.banner_label.setWordWrap(True)
+        bl.addWidget(self.banner_label, 1)
+        self.ack_button = QtWidgets.QPushButton("Acknowledge")
+        self.ack_button.setMinimumHeight(32)
+        self.ack_button.clicked.connect(self.acknowledge_estop)
+        bl.addWidget(self.ack_button)
+        self.banner.hide()
+        v.addWidget(self.banner)
+        self.message = QtWidgets.QLabel("")
+        self.message.setWordWrap(True)
+        self.message.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
+        v.addWidget(self.message)
+        self.readout = QtWidgets.QLabel("readouts: not connected")
+        self.readout.setStyleSheet("color: #333;")
+        v.addWidget(self.readout)
+        return bar
 
-    def _controller_panel(self) -> QtWidgets.QGroupBox:
-        box = QtWidgets.QGroupBox("Controller")
-        form = QtWidgets.QFormLayout(box)
+    def _form_panel(self) -> tuple[QtWidgets.QWidget, QtWidgets.QFormLayout]:
+        w = QtWidgets.QWidget()
+        form = QtWidgets.QFormLayout(w)
+        form.setFieldGrowthPolicy(QtWidgets.QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
+        return w, form
+
+    def _add_field(self, form: QtWidgets.QFormLayout, name: str) -> NumberField:
+        w = self._field(name)
+        unit = f" ({w.spec.unit})" if w.spec.unit else ""
+        form.addRow(w.spec.label + unit, w)
+        return w
+
+    def _experiment_panel(self) -> QtWidgets.QWidget:
+        w, form = self._form_panel()
+        self.experiment_form = form
+        self.protocol = NoWheelCombo()
+        self.protocol.addItems(PROTOCOL_NAMES)
+        self.protocol.setToolTip("cycles, incomplete, inner, step, ramp: the current is set "
+                                 "directly (Open loop); step, staircase, sine, triangle: a "
+                                 "position reference for PID, FF or FF+PID")  # fmt: skip
+        self.protocol.currentTextChanged.connect(self._show_protocol_fields)
+        self.load_field = self._add_field(form, "load_kg")
+        form.addRow("protocol", self.protocol)
+        self.protocol_fields = [n for n, s in self.specs.items()
+                                if s.group == "experiment" and n != "load_kg"]  # fmt: skip
+        for name in self.protocol_fields:
+            self._add_field(form, name)
+        self.load_field.changed.connect(self._show_table_gains)
+        return w
+
+    def _limits_panel(self) -> QtWidgets.QWidget:
+        w, form = self._form_panel()
+        note = QtWidgets.QLabel("Checked every control tick; a session that crosses one stops "
+                                "with the output off.")  # fmt: skip
+        note.setWordWrap(True)
+        form.addRow(note)
+        for name in (n for n, s in self.specs.items() if s.group == "limits"):
+            self._add_field(form, name)
+        return w
+
+    def _controller_panel(self) -> QtWidgets.QWidget:
+        w, form = self._form_panel()
         row = QtWidgets.QHBoxLayout()
         self.mode_buttons: dict[str, QtWidgets.QRadioButton] = {}
-        group = QtWidgets.QButtonGroup(box)
+        group = QtWidgets.QButtonGroup(w)
         for mode, label in MODES:
             b = QtWidgets.QRadioButton(label)
             group.addButton(b)
@@ -226,54 +264,199 @@ class MainWindow(QtWidgets.QMainWindow):
             b.clicked.connect(lambda _=False, m=mode: self.set_mode(m))
         self.mode_buttons["open_loop"].setChecked(True)
         form.addRow(row)
-        from smabench.control import gains_for_load
-
-        g = gains_for_load(self.load_kg.value())
-        self.kp = _spin(0, 100, g.kp, 0.01, 3)
-        self.ki = _spin(0, 100, g.ki, 0.01, 3)
-        self.kd = _spin(0, 100, g.kd, 0.01, 3)
-        self.load_kg.valueChanged.connect(self._show_load_gains)
-        form.addRow("Kp (W/mm)", self.kp)
-        form.addRow("Ki (W/(mm·s))", self.ki)
-        form.addRow("Kd (W·s/mm)", self.kd)
-        apply = QtWidgets.QPushButton("Apply gains (default: per-load table)")
-        apply.clicked.connect(self.apply_gains)
-        form.addRow(apply)
+        self.active_mode = QtWidgets.QLabel("active law: – (no session)")
+        self.active_mode.setStyleSheet("font-weight: bold;")
+        form.addRow(self.active_mode)
+        self._add_field(form, "open_loop_current_a")
+        self.gain_table_boxes: dict[str, QtWidgets.QCheckBox] = {}
+        self.gain_apply: dict[str, QtWidgets.QPushButton] = {}
+        for law, title, _units in GAIN_LAWS:
+            box = QtWidgets.QGroupBox(f"{title} gains")
+            f = QtWidgets.QFormLayout(box)
+            table = QtWidgets.QCheckBox("per-load table (follows the load)")
+            table.setChecked(True)
+            table.toggled.connect(lambda on, law=law: self.use_gain_table(law, on))
+            self.gain_table_boxes[law] = table
+            f.addRow(table)
+            for k in ("kp", "ki", "kd"):
+                fw = self._field(f"{law}_{k}")
+                f.addRow(f"{k.capitalize()} ({fw.spec.unit})", fw)
+            apply = QtWidgets.QPushButton("Apply these gains")
+            apply.clicked.connect(lambda _=False, law=law: self.apply_gains(law))
+            self.gain_apply[law] = apply
+            f.addRow(apply)
+            form.addRow(box)
         self.setpoint_label = QtWidgets.QLabel("setpoint –")
         form.addRow(self.setpoint_label)
-        return box
+        self._show_table_gains()
+        return w
+
+    def _connection_panel(self, mock_speed: float) -> QtWidgets.QWidget:
+        w, form = self._form_panel()
+        self.connection_form = form
+        self.use_mock = QtWidgets.QRadioButton("Built-in mock bench")
+        self.use_real = QtWidgets.QRadioButton("Real devices")
+        self.use_mock.setChecked(True)
+        self.use_mock.toggled.connect(self._show_device_fields)
+        form.addRow(self.use_mock)
+        form.addRow(self.use_real)
+        self.mock_speed = self._add_field(form, "mock_speed")
+        self.mock_speed.set_value(mock_speed)
+        self.mock_effect = QtWidgets.QLineEdit()
+        self.mock_effect.setPlaceholderText("e.g. latent_heat=24000 (optional)")
+        form.addRow("plant effect", self.mock_effect)
+        self.serial_port = NoWheelCombo()
+        self.serial_port.setEditable(True)
+        refresh = QtWidgets.QPushButton("↻")
+        refresh.setToolTip("look for serial ports again")
+        refresh.setMaximumWidth(30)
+        refresh.clicked.connect(self.refresh_ports)
+        self.port_row = QtWidgets.QWidget()
+        pr = QtWidgets.QHBoxLayout(self.port_row)
+        pr.setContentsMargins(0, 0, 0, 0)
+        pr.addWidget(self.serial_port, 1)
+        pr.addWidget(refresh)
+        form.addRow("driver port", self.port_row)
+        self.sensor_kind = NoWheelCombo()
+        self.sensor_kind.addItems(["TCP", "RTU"])
+        self.sensor_kind.currentTextChanged.connect(self._show_device_fields)
+        form.addRow("sensor link", self.sensor_kind)
+        self.sensor_host = QtWidgets.QLineEdit("192.168.0.10")
+        form.addRow("TCP host", self.sensor_host)
+        self.sensor_tcp_port = self._add_field(form, "sensor_tcp_port")
+        self.sensor_rtu_port = NoWheelCombo()
+        self.sensor_rtu_port.setEditable(True)
+        form.addRow("RTU port", self.sensor_rtu_port)
+        self.sensor_baud = NoWheelCombo()
+        self.sensor_baud.addItems(["9600", "19200", "38400", "57600", "115200"])
+        self.sensor_baud.setCurrentText("115200")
+        form.addRow("RTU baud", self.sensor_baud)
+        self.sensor_unit = self._add_field(form, "sensor_unit")
+        self.sensor_map = NoWheelCombo()
+        from smabench.drivers.displacement import available_maps
+
+        self.sensor_map.addItems(available_maps())
+        self.sensor_map.setCurrentText("generic-rs485-laser")
+        form.addRow("register map", self.sensor_map)
+        self.refresh_ports()
+        return w
 
     def _sessions_panel(self) -> QtWidgets.QWidget:
         w = QtWidgets.QWidget()
         v = QtWidgets.QVBoxLayout(w)
-        self.session_list = QtWidgets.QListWidget()
+        top = QtWidgets.QHBoxLayout()
+        self.sessions_label = QtWidgets.QLabel()
+        self.sessions_label.setTextInteractionFlags(
+            QtCore.Qt.TextInteractionFlag.TextSelectableByMouse
+        )
+        top.addWidget(self.sessions_label, 1)
+        for label, slot in (("Change folder…", self.choose_sessions_dir),
+                            ("Open a session folder…", self.open_folder_dialog),
+                            ("Refresh", self.refresh_sessions)):  # fmt: skip
+            b = QtWidgets.QPushButton(label)
+            b.clicked.connect(slot)
+            top.addWidget(b)
+        v.addLayout(top)
+        self.session_list = QtWidgets.QTreeWidget()
+        self.session_list.setHeaderLabels(["date", "load", "protocol", "status", "folder"])
+        self.session_list.setRootIsDecorated(False)
+        self.session_list.setAlternatingRowColors(True)
+        self.session_list.itemDoubleClicked.connect(lambda *_: self.open_selected())
         v.addWidget(self.session_list, 1)
         row = QtWidgets.QHBoxLayout()
-        for label, slot in (("Refresh", self.refresh_sessions), ("Open", self.open_selected),
+        for label, slot in (("Open (replay)", self.open_selected),
                             ("Export CSV…", self.export_dialog)):  # fmt: skip
             b = QtWidgets.QPushButton(label)
             b.clicked.connect(slot)
             row.addWidget(b)
         row.addStretch(1)
         row.addWidget(QtWidgets.QLabel("model"))
-        self.fit_model = QtWidgets.QComboBox()
+        self.fit_model = NoWheelCombo()
         self.fit_model.addItems(MODELS)
         self.fit_model.setCurrentText("sigmoid")
         row.addWidget(self.fit_model)
-        row.addWidget(QtWidgets.QLabel("cycle (−1 = last)"))
-        self.fit_cycle = QtWidgets.QSpinBox()
-        self.fit_cycle.setRange(-1, 100000)
-        self.fit_cycle.setValue(-1)
+        row.addWidget(QtWidgets.QLabel("cycle"))
+        self.fit_cycle = NumberField(FieldSpec(
+            "fit_cycle", "cycle", None, 1, 100000, "", "cycle to fit, counted from 1",
+            integer=True, optional=True, empty_text="last"))  # fmt: skip
+        self.fit_cycle.setMaximumWidth(70)
         row.addWidget(self.fit_cycle)
-        fit = QtWidgets.QPushButton("Fit")
-        fit.clicked.connect(self.fit_shown)
-        row.addWidget(fit)
+        self.fit_button = QtWidgets.QPushButton("Fit selected session")
+        self.fit_button.clicked.connect(self.fit_selected)
+        row.addWidget(self.fit_button)
         v.addLayout(row)
-        self.fit_text = QtWidgets.QPlainTextEdit()
-        self.fit_text.setReadOnly(True)
-        self.fit_text.setMaximumHeight(200)
-        v.addWidget(self.fit_text)
+        self.jobs_label = QtWidgets.QLabel("")
+        v.addWidget(self.jobs_label)
         return w
+
+    # ------------------------------------------------------------------ field visibility
+    def _show_protocol_fields(self, *_: Any) -> None:
+        wanted = fields_for_protocol(self.specs, self.protocol.currentText())
+        for name in self.protocol_fields:
+            self.experiment_form.setRowVisible(self.fields[name], name in wanted)
+
+    def _show_device_fields(self, *_: Any) -> None:
+        mock = self.use_mock.isChecked()
+        tcp = self.sensor_kind.currentText() == "TCP"
+        f = self.connection_form
+        f.setRowVisible(self.mock_speed, mock)
+        f.setRowVisible(self.mock_effect, mock)
+        for wdg in (self.port_row, self.sensor_kind, self.sensor_unit, self.sensor_map):
+            f.setRowVisible(wdg, not mock)
+        for wdg in (self.sensor_host, self.sensor_tcp_port):
+            f.setRowVisible(wdg, not mock and tcp)
+        for wdg in (self.sensor_rtu_port, self.sensor_baud):
+            f.setRowVisible(wdg, not mock and not tcp)
+
+    def visible_fields(self) -> list[NumberField]:
+        return [f for f in self.fields.values() if f.isVisibleTo(self)]
+
+    # ------------------------------------------------------------------ state
+    def fire(self, event: str) -> State:
+        state = self.sm.fire(event)
+        self._apply_state()
+        return state
+
+    @property
+    def state(self) -> State:
+        return self.sm.state
+
+    @property
+    def running(self) -> bool:
+        return self.state in IN_SESSION
+
+    def _apply_state(self) -> None:
+        st = self.state
+        c = controls_for(st)
+        self.state_label.setText(STATE_TEXT[st])
+        self.state_label.setStyleSheet("font-size: 15px; font-weight: bold; color: %s;" % (
+            "#c62828" if st in (State.ESTOPPED, State.ERROR) else "#1b5e20"
+            if st in (State.RUNNING, State.PAUSED) else "#333"))  # fmt: skip
+        self.connect_button.setEnabled(c.connect)
+        self.connect_button.setText(c.connect_label)
+        self.start_button.setEnabled(c.start)
+        self.pause_button.setEnabled(c.pause)
+        self.pause_button.setText("Resume" if st == State.PAUSED else "Pause")
+        self.stop_button.setEnabled(c.stop)
+        self.banner.setVisible(st == State.ESTOPPED)
+        self.ack_button.setEnabled(c.acknowledge)
+        for name, f in self.fields.items():
+            spec = f.spec
+            if spec.group in ("mock", "tcp", "real"):
+                f.setEnabled(c.connection_fields)
+            elif not spec.live and name != "fit_cycle":
+                f.setEnabled(c.session_fields)
+        for wdg in (self.use_mock, self.use_real, self.mock_effect, self.port_row,
+                    self.sensor_kind, self.sensor_host, self.sensor_rtu_port, self.sensor_baud,
+                    self.sensor_map):  # fmt: skip
+            wdg.setEnabled(c.connection_fields)
+        self.protocol.setEnabled(c.session_fields)
+        in_run = st in (State.RUNNING, State.PAUSED)
+        for b in self.mode_buttons.values():
+            # mid-run only a controller session can switch law; before a run any may be chosen
+            b.setEnabled(not in_run or self.session_controller)
+        if not in_run:
+            self.active_mode.setText("active law: – (no session running)")
 
     # ------------------------------------------------------------------ connection
     def refresh_ports(self) -> None:
@@ -288,158 +471,283 @@ class MainWindow(QtWidgets.QMainWindow):
                 combo.setCurrentText(current)
 
     def devices_config(self) -> dict[str, Any]:
+        """What the runtime opens; ValueError in words when a field is wrong."""
         if self.use_mock.isChecked():
-            args = ["--load-kg", f"{self.load_kg.value():g}", "--speed",
-                    f"{self.mock_speed.value():g}"]  # fmt: skip
+            speed = self.mock_speed.value()
+            args = ["--load-kg", f"{self.load_field.value():g}", "--speed", f"{speed:g}"]
             for effect in filter(None, (e.strip() for e in self.mock_effect.text().split(","))):
                 args += ["--effect", effect]
-            return {"mock": args, "time_scale": self.mock_speed.value()}
+            return {"mock": args, "time_scale": speed}
         if self.sensor_kind.currentText() == "TCP":
-            spec = f"tcp:{self.sensor_host.text().strip()}:{self.sensor_tcp_port.value()}"
+            host = self.sensor_host.text().strip()
+            if not host:
+                raise ValueError("enter the sensor's TCP host (Connection tab)")
+            spec = f"tcp:{host}:{self.sensor_tcp_port.value()}"
         else:
             device = self.sensor_rtu_port.currentText().strip()
+            if not device:
+                raise ValueError("choose the sensor's RTU serial port (Connection tab)")
             spec = f"rtu:{device}:{self.sensor_baud.currentText()}"
         port = self.serial_port.currentText().strip()
         if not port:
-            raise ValueError("choose the current driver's serial port")
+            raise ValueError("choose the current driver's serial port (Connection tab)")
         return {"port": port, "sensor": spec, "sensor_map": self.sensor_map.currentText(),
                 "unit_id": self.sensor_unit.value()}  # fmt: skip
 
-    def connect_devices(self) -> None:
-        self.disconnect_devices()
+    def connect_devices(self) -> bool:
+        """Start the runtime process on the chosen devices (state ``connecting``)."""
+        if self.link is not None:
+            self.disconnect_devices()
         try:
             cfg = self.devices_config()
         except ValueError as exc:
-            self.show_error(str(exc))
-            return
+            self.say(str(exc), error=True)
+            return False
+        self.fire("connect")
         self.link = RuntimeLink(cfg)
-        self.link_load_kg = self.load_kg.value() if "mock" in cfg else None
+        self.link_config = cfg
+        self._link_down = 0
         self.health.setText("connecting …")
-        self.connect_button.setText("Disconnect")
+        self.say("Connecting to the mock bench …" if "mock" in cfg else
+                 f"Connecting to the driver on {cfg['port']} …")  # fmt: skip
+        return True
 
     def disconnect_devices(self) -> None:
         if self.link is not None:
-            self.link.close()
-            self.link = None
+            link, self.link = self.link, None
+            link.close()
         self.status = {}
-        self.connect_button.setText("Connect")
+        self.pending_start = None
         self.health.setText("not connected")
-        self._set_running(False)
+        self.readout.setText("readouts: not connected")
+        if self.state != State.ESTOPPED:
+            self.fire("disconnect")
+        self._apply_state()
 
     def toggle_connection(self) -> None:
-        if self.link is not None:
-            self.disconnect_devices()
-        else:
+        if self.state in NOT_CONNECTED:
             self.connect_devices()
+        else:
+            self.disconnect_devices()
 
     @property
     def connected(self) -> bool:
         return self.link is not None and self.link.alive and self.link.ports is not None
 
+    def wait_connected(self, timeout_s: float) -> bool:
+        """For scripts (benchmarks): process events until connected or failed."""
+        deadline = time.monotonic() + timeout_s
+        while self.state == State.CONNECTING and time.monotonic() < deadline:
+            QtWidgets.QApplication.processEvents(QtCore.QEventLoop.ProcessEventsFlag.AllEvents, 50)
+            self.on_frame()
+        return self.connected
+
     # ------------------------------------------------------------------ experiment
     def selected_mode(self) -> str:
         return next((m for m, b in self.mode_buttons.items() if b.isChecked()), "open_loop")
 
+    def _v(self, name: str) -> Any:
+        return self.fields[name].value()
+
+    def field_errors(self) -> list[str]:
+        """Sentences for the visible fields that are not valid (empty: all good)."""
+        return [e for f in self.visible_fields() if (e := f.error())]
+
     def settings_dict(self) -> dict[str, Any]:
-        """The session's settings; a closed-loop law with a position reference when one of
-        PID, FF, FF+PID is selected and the protocol is a reference."""
+        """The session's settings from the fields; ValueError in words when one is wrong."""
+        errors = self.field_errors()
+        if errors:
+            raise ValueError(errors[0])
+        name = self.protocol.currentText()
         mode = self.selected_mode()
-        closed = mode != "open_loop" and self.protocol.currentText() in REFERENCE_NAMES
-        offset = self.offset_mm.value()
-        out = {
-            "load_kg": self.load_kg.value(),
+        if mode == "open_loop" and name not in ("cycles", "incomplete", "inner", "step", "ramp"):
+            raise ValueError(f"the {name} protocol is a position reference: choose PID, FF or "
+                             "FF+PID in the Controller tab, or an open-loop protocol")  # fmt: skip
+        closed = mode != "open_loop" and name in REFERENCE_NAMES
+        if mode != "open_loop" and not closed:
+            raise ValueError(f"the {name} protocol sets the current directly: choose Open loop "
+                             "in the Controller tab, or a position reference (step, staircase, "
+                             "sine, triangle)")  # fmt: skip
+        lo, hi = self._v("position_min_mm"), self._v("position_max_mm")
+        if lo is not None and hi is not None and lo >= hi:
+            raise ValueError(f"the lowest position ({lo:g} mm) must be below the highest "
+                             f"({hi:g} mm)")  # fmt: skip
+        limit = self._v("current_limit_a")
+        wanted = fields_for_protocol(self.specs, name)
+        if "current_a" in wanted and self._v("current_a") > limit:
+            raise ValueError(f"the current ({self._v('current_a'):g} A) is above the current "
+                             f"limit ({limit:g} A, Limits tab)")  # fmt: skip
+        proto: dict[str, Any] = {"name": name}
+        for n in wanted - {"load_kg"}:
+            proto[n] = self._v(n)
+        out: dict[str, Any] = {
+            "load_kg": self._v("load_kg"),
             "out_dir": str(self.sessions_dir),
             "time_scale": self.mock_speed.value() if self.use_mock.isChecked() else 1.0,
-            "protocol": {
-                "name": self.protocol.currentText(),
-                "cycles": self.cycles.value(),
-                "current_a": self.current_a.value(),
-                "heat_s": self.heat_s.value(),
-                "cool_timeout_s": self.cool_s.value(),
-                "partial_cool_s": self.partial_cool_s.value(),
-                "inner_heat_s": self.inner_heat_s.value(),
-                "inner_cool_s": self.inner_cool_s.value(),
-                "amplitude_mm": self.amplitude_mm.value(),
-                "offset_mm": None if offset <= self.offset_mm.minimum() else offset,
-                "period_s": self.period_s.value(),
-            },
+            "protocol": proto,
+            "current_limit_a": limit,
+            "temperature_limit_c": self._v("temperature_limit_c"),
+            "position_min_mm": lo,
+            "position_max_mm": hi,
+            "max_duration_s": self._v("max_duration_s"),
         }
         if closed:
-            out["controller"] = {"mode": mode, "gains": self.custom_gains}
+            from smabench.control import gains_for_load
+
+            ctl: dict[str, Any] = {"mode": mode}
+            for law, key in (("pid", "gains"), ("ffpid", "ffpid_gains"),
+                             ("ffpid_hold", "ffpid_hold_gains")):  # fmt: skip
+                g = self.custom_gains[law]
+                if g is not None:  # the table's derivative filter is kept
+                    ctl[key] = [*g, gains_for_load(out["load_kg"], law=law).d_filter_s]
+            out["controller"] = ctl
         return out
 
     def start_experiment(self) -> None:
-        """Start a session (connecting first, or reconnecting a mock whose load changed)."""
-        mock = self.use_mock.isChecked()
-        if self.link is None or (mock and self.link_load_kg != self.load_kg.value()):
-            self.connect_devices()
-        if not self.wait_connected(20.0):
+        """Check the fields, confirm a high-stress load, connect if needed, send the start."""
+        if not controls_for(self.state).start:
             return
-        self.buffer.clear()
-        self.loop_plot.reset()
-        self.time_plots.reset()
-        self.time_plots.follow = True
-        self.last_end = None
-        self.end_label.setText("")
-        self.pause_button.setChecked(False)
-        settings = self.settings_dict()
-        if "controller" not in settings:
-            self.mode_buttons["open_loop"].setChecked(True)
-        self.link.start(settings)
-        self._set_running(True)
+        try:
+            settings = self.settings_dict()
+            cfg = self.devices_config()
+        except ValueError as exc:
+            self.say(f"Not started: {exc}.", error=True)
+            return
+        question = needs_high_stress_confirmation(settings["load_kg"])
+        if question and not self._confirm(question):
+            self.say("Not started: the high-stress load was not confirmed.")
+            return
+        if self.state == State.ESTOPPED:  # latched while the question was open
+            return
+        if self.link is not None and cfg != self.link_config:
+            self.say("The connection settings changed: reconnecting first.")
+            self.disconnect_devices()
+        if self.state in NOT_CONNECTED:
+            self.pending_start = settings
+            self.connect_devices()
+            return
+        self._send_start(settings)
 
-    def wait_connected(self, timeout_s: float) -> bool:
-        """Process events until the runtime reports its ports (or fails)."""
-        deadline = time.monotonic() + timeout_s
-        while self.link is not None and self.link.ports is None:
-            QtWidgets.QApplication.processEvents(QtCore.QEventLoop.ProcessEventsFlag.AllEvents, 50)
-            self.on_frame()
-            if time.monotonic() > deadline:
-                self.show_error("the devices did not answer in time")
-                self.disconnect_devices()
-                return False
-        return self.link is not None
+    def _confirm(self, question: str) -> bool:
+        box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Warning, "High stress", question,
+                                    QtWidgets.QMessageBox.StandardButton.Yes
+                                    | QtWidgets.QMessageBox.StandardButton.No, self)  # fmt: skip
+        box.setDefaultButton(QtWidgets.QMessageBox.StandardButton.No)
+        self._dialog = box
+        return box.exec() == QtWidgets.QMessageBox.StandardButton.Yes
+
+    def _send_start(self, settings: dict[str, Any]) -> None:
+        self.pending_start = None
+        self.fire("start")
+        self.session_controller = "controller" in settings
+        self.pending_settings = settings
+        self.link.start(settings)
+        self.say("Starting …")
+
+    def toggle_pause(self) -> None:
+        if self.state == State.RUNNING:
+            self.link.send("pause")
+            self._paused_at = time.monotonic()
+            self.fire("pause")
+        elif self.state == State.PAUSED:
+            self.link.send("resume")
+            if self._paused_at is not None:
+                self._paused_total_s += time.monotonic() - self._paused_at
+            self._paused_at = None
+            self.fire("resume")
 
     def pause_experiment(self, on: bool) -> None:
-        if self.link is not None and self.link.alive:
-            self.link.send("pause" if on else "resume")
-            self.pause_button.setText("Resume" if on else "Pause")
+        if on != (self.state == State.PAUSED):
+            self.toggle_pause()
 
     def stop_experiment(self) -> None:
-        if self.link is not None and self.link.alive:
+        if self.link is not None and self.link.alive and self.running:
             self.link.send("stop")
+            self.say("Stopping …")
 
     def estop(self) -> None:
-        """Both devices safe at once: the runtime e-stops (or makes the driver safe if idle)."""
+        """E-STOP: the runtime first (output off, session aborted), then the display."""
         self.estop_time = time.monotonic()
-        if self.link is not None:
-            self.link.estop()
-        self.statusBar().showMessage("E-STOP: output off", 10000)
+        link = self.link
+        sent = link.estop() if link is not None else False
+        self.last_estop = None
+        self.fire("estop")
+        if sent:
+            text = ("E-STOP: output off command sent to the driver; waiting for its "
+                    "confirmation …")  # fmt: skip
+        elif self.state == State.ESTOPPED and link is not None and link.alive:
+            text = "E-STOP: the bench is still connecting; nothing was driven."
+        else:
+            text = "E-STOP: nothing is connected, so no output was on."
+        self.banner_label.setText(f"{text}  Press Acknowledge when it is safe to go on.")
+        self.say(text, error=True)
+
+    def acknowledge_estop(self) -> None:
+        if self.state != State.ESTOPPED:
+            return
+        self.fire("acknowledge_connected" if self.connected else "acknowledge_disconnected")
+        self.say("E-STOP acknowledged.")
 
     def set_mode(self, mode: str) -> None:
-        if self.link is not None and self.link.alive:
-            self.link.send(f"mode {mode}")
+        """Switch the law of a running controller session (the open-loop current first)."""
+        if not (self.state in (State.RUNNING, State.PAUSED) and self.session_controller):
+            return
+        if mode == "open_loop":
+            current = self.fields["open_loop_current_a"]
+            if current.error():
+                self.say(f"Not switched: {current.error()}.", error=True)
+                self.mode_buttons[self.status.get("mode", "pid")].setChecked(True)
+                return
+            self.link.send(f"open_current {current.value():g}")
+        self.link.send(f"mode {mode}")
 
-    def _show_load_gains(self, load_kg: float) -> None:
-        """Show the PID gains of the per-load table for this load (until gains are applied)."""
-        if self.custom_gains is None:
-            from smabench.control import gains_for_load
+    def _show_table_gains(self) -> None:
+        """Fields of the gain sets that follow the per-load table show its gains."""
+        from smabench.control import gains_for_load
 
-            g = gains_for_load(load_kg)
-            for spin, v in ((self.kp, g.kp), (self.ki, g.ki), (self.kd, g.kd)):
-                spin.setValue(v)
+        if self.load_field.error():
+            return
+        load = self.load_field.value()
+        for law, *_ in GAIN_LAWS:
+            if self.custom_gains[law] is None:
+                g = gains_for_load(load, law=law)
+                for k, v in (("kp", g.kp), ("ki", g.ki), ("kd", g.kd)):
+                    self.fields[f"{law}_{k}"].set_value(round(v, 4))
 
-    def apply_gains(self) -> None:
-        """Use these gains from now on (live when running; for the next session anyway)."""
-        self.custom_gains = [self.kp.value(), self.ki.value(), self.kd.value()]
-        if self.link is not None and self.link.alive and self.running:
-            self.link.send("gains " + " ".join(map(str, self.custom_gains)))
+    def use_gain_table(self, law: str, on: bool) -> None:
+        """Back to (or away from) the per-load table for one gain set; live when running."""
+        if on:
+            self.custom_gains[law] = None
+            self._show_table_gains()
+            if self._live_controller():
+                from smabench.control import gains_for_load
 
-    def _set_running(self, running: bool) -> None:
-        self.running = running
-        self.start_button.setEnabled(not running)
-        self.pause_button.setEnabled(running)
-        self.stop_button.setEnabled(running)
+                g = gains_for_load(self.load_field.value(), law=law)
+                self.link.send(f"gains {g.kp} {g.ki} {g.kd} {law}")
+            self.say(f"{dict((a, b) for a, b, _ in GAIN_LAWS)[law]} gains: per-load table.")
+
+    def apply_gains(self, law: str) -> None:
+        """Use the fields' gains for ``law`` from now on (live when running)."""
+        fs = [self.fields[f"{law}_{k}"] for k in ("kp", "ki", "kd")]
+        bad = [f.error() for f in fs if f.error()]
+        if bad:
+            self.say(f"Gains not applied: {bad[0]}.", error=True)
+            return
+        self.custom_gains[law] = [f.value() for f in fs]
+        box = self.gain_table_boxes[law]
+        box.blockSignals(True)
+        box.setChecked(False)
+        box.blockSignals(False)
+        title = dict((a, b) for a, b, _ in GAIN_LAWS)[law]
+        if self._live_controller():
+            self.link.send("gains " + " ".join(map(str, self.custom_gains[law])) + f" {law}")
+            self.say(f"{title} gains applied to the running session.")
+        else:
+            self.say(f"{title} gains will be used from the next session.")
+
+    def _live_controller(self) -> bool:
+        return (self.state in (State.RUNNING, State.PAUSED) and self.session_controller
+                and self.link is not None)  # fmt: skip
 
     # ------------------------------------------------------------------ frame
     def on_frame(self) -> None:
@@ -447,11 +755,16 @@ class MainWindow(QtWidgets.QMainWindow):
         link = self.link
         if link is not None:
             rows = link.take_rows()
-            if rows.size:
+            if rows.size and self.state in (State.RUNNING, State.PAUSED, State.STARTING,
+                                            State.ESTOPPED):  # fmt: skip
                 self.buffer.append_rows(rows)
             for kind, payload in link.poll():
+                if self.link is not link:  # disconnected while handling an event
+                    break
                 self.on_event(kind, payload)
-        if self.tabs.currentIndex() == 0 or self.buffer.n:
+        self.jobs.poll()
+        self.jobs_label.setText("working …" if self.jobs.busy else "")
+        if self.tabs.currentIndex() == 0 and self.buffer.n:
             self.loop_plot.update_from(self.buffer)
             self.time_plots.update_from(self.buffer)
         if self.buffer.n:
@@ -465,160 +778,325 @@ class MainWindow(QtWidgets.QMainWindow):
     def on_event(self, kind: str, payload: dict[str, Any]) -> None:
         if kind == "P":
             self.link.ports = payload
+            self.fire("connected")
             dev = payload["device"]
-            self.statusBar().showMessage(f"connected: {dev['name']} on {payload['driver']}, "
-                                         f"sensor {payload['sensor']}", 5000)  # fmt: skip
+            where = "mock bench" if payload.get("mock_pid") else payload["driver"]
+            self.say(f"Connected: {dev['name']} ({where}).")
+            if self.pending_start is not None and self.state == State.IDLE:
+                self._send_start(self.pending_start)
         elif kind == "S":
-            if "error" in payload:
-                self.show_error(payload["error"])
-                return
-            self.status = payload
-            self._show_status(payload)
+            self._on_status(payload)
+        elif kind == "X":
+            self._on_estop_report(payload)
         elif kind == "E":
-            self.last_end = payload
-            self._set_running(False)
-            if payload["status"] == "completed":
-                self.progress.setValue(1000)
-            el = float(self.status.get("elapsed_s", 0.0))
-            self.times.setText(f"elapsed {el:.0f} s   ended: {payload['status']}")
-            text = f"{payload['status']}: {payload['reason']}"
-            if payload.get("samples") is not None:
-                text += f" ({payload['samples']} samples)"
-            self.end_label.setText(text)
-            if payload["status"] != "completed":
-                self.show_error(f"session {text}")
-            self.refresh_sessions()
-            self.session_ended.emit(payload)
+            self._on_end(payload)
         elif kind == "Q":
-            if self.link is not None and self.link.ports is None:
-                self.show_error(f"could not connect: {payload.get('reason', '')}")
-            self.link = None
-            self.connect_button.setText("Connect")
-            self.health.setText("not connected")
-            self._set_running(False)
+            self._on_runtime_gone(payload)
+
+    def _on_status(self, st: dict[str, Any]) -> None:
+        if "error" in st:
+            text = words.plain(st["error"])
+            if st.get("command") == "start" or self.state == State.STARTING:
+                self.fire("refused")
+                self.say(f"Not started: {text}", error=True)
+            else:
+                self.say(text, error=True)
+            return
+        if "started" in st:
+            self.session_folder = Path(st["started"])
+            self._paused_total_s, self._paused_at = 0.0, None
+            self.buffer.clear()
+            self.loop_plot.reset()
+            self.time_plots.reset()
+            self.time_plots.follow = True
+            self.progress.setValue(0)
+            self.last_end = None
+            self.fire("started")
+            self.tabs.setCurrentIndex(0)
+            self.say(f"Running; recording to {self.session_folder}")
+            return
+        self.status = st
+        self._show_status(st)
 
     def _show_status(self, st: dict[str, Any]) -> None:
         stats = st.get("sensor_stats", {})
-        drv = "ok" if st.get("driver_link_ok") else "LOST"
-        fault = f" ({st['driver_fault']})" if st.get("driver_fault") else ""
+        drv_ok = bool(st.get("driver_link_ok"))
+        fault = words.plain(st["driver_fault"]) if st.get("driver_fault") else ""
         self.health.setText(
-            f"driver {drv}{fault} · sensor {stats.get('ok', 0)}/{stats.get('reads', 0)} ok, "
-            f"{stats.get('timeouts', 0)} timeouts"
+            f"driver {'ok' if drv_ok else 'LOST'}{' · ' + fault if fault else ''} · sensor "
+            f"{stats.get('ok', 0)}/{stats.get('reads', 0)} ok, {stats.get('timeouts', 0)} timeouts"
         )
-        self.health.setStyleSheet("" if drv == "ok" and not fault else "color: #c62828;")
-        if "progress" in st and st.get("running"):
+        self.health.setStyleSheet("" if drv_ok and not fault else "color: #c62828;")
+        r = st.get("readout", {})
+
+        def fmt(v: Any, f: str) -> str:
+            return "–" if v is None else format(v, f)
+
+        mode = st.get("mode")
+        self.readout.setText(
+            f"current {fmt(r.get('current_a'), '.3f')} A · position "
+            f"{fmt(r.get('position_mm'), '.3f')} mm · wire (estimated) "
+            f"{fmt(r.get('temperature_c'), '.1f')} °C · ambient {fmt(r.get('ambient_c'), '.1f')}"
+            f" °C · law {MODE_LABEL.get(mode, 'open loop') if st.get('running') else '–'}"
+        )
+        if st.get("running") and mode:
+            self.active_mode.setText(f"active law: {MODE_LABEL.get(mode, mode)}")
+            if self.session_controller and mode in self.mode_buttons:
+                self.mode_buttons[mode].setChecked(True)
+        if self.state == State.IDLE:
+            self._link_down = 0 if drv_ok else self._link_down + 1
+            if self._link_down >= LOST_STATUSES:
+                self._lose(words.LOST_DRIVER)
+                return
+        if "progress" in st and st.get("running") and self.state in (State.RUNNING,
+                                                                      State.PAUSED):
             p = float(st["progress"])
             self.progress.setValue(int(1000 * p))
             el = float(st.get("elapsed_s", 0.0))
-            rem = f"{el / p * (1 - p):.0f} s" if p > 0.02 else "–"
-            self.times.setText(f"elapsed {el:.0f} s   remaining {rem}   "
-                               f"cycle {st['cycle'] + 1}/{st['cycles']} {st['phase']}")  # fmt: skip
+            if self.state == State.RUNNING:  # frozen while paused
+                active = el - self._paused_total_s
+                self._remaining_text = f"{active / p * (1 - p):.0f} s" if p > 0.02 else "–"
+            cycle = int(st.get("cycle") or 0)
+            self.times.setText(f"elapsed {el:.0f} s   remaining {self._remaining_text}   "
+                               f"cycle {shown_cycle(cycle)} of {st['cycles']} · "
+                               f"{st['phase']}")  # fmt: skip
+
+    def _on_estop_report(self, x: dict[str, Any]) -> None:
+        self.last_estop = x
+        if x.get("confirmed") and self.estop_time is not None:
+            ms = (x["output_off_t"] - self.estop_time) * 1e3
+            text = f"E-STOP: the driver reports its output off ({ms:.0f} ms after the press)."
+        else:
+            text = ("E-STOP: the driver did not confirm output off. It switches itself off "
+                    "when the computer stops talking to it; check the bench.")  # fmt: skip
+        if self.state == State.ESTOPPED:
+            self.banner_label.setText(f"{text}  Press Acknowledge when it is safe to go on.")
+        self.say(text, error=not x.get("confirmed"))
+
+    def _on_end(self, end: dict[str, Any]) -> None:
+        if self.state == State.CONNECTING:  # the runtime could not open the devices
+            self.last_error = words.plain(end.get("reason", ""))
+            return
+        self.last_end = end
+        self._paused_at = None
+        status = end.get("status", "aborted")
+        reason = words.plain(end.get("reason", ""))
+        if status == "completed":
+            self.progress.setValue(1000)
+        el = float(self.status.get("elapsed_s", 0.0))
+        self.times.setText(f"elapsed {el:.0f} s   ended: {status}")
+        folder = end.get("folder")
+        n = end.get("samples")
+        text = f"Session {status}: {reason}"
+        if n is not None:
+            text += f" {n} samples"
+        text += f", saved in {folder}." if folder else " Nothing was saved."
+        self.session_folder = None
+        lost = words.device_lost(end.get("reason", ""))
+        if self.state != State.ESTOPPED:
+            self.fire("ended")
+        self.say(text, error=status != "completed")
+        self.refresh_sessions()
+        self.session_ended.emit(end)
+        if lost:
+            self._lose(f"{reason} {text}")
+
+    def _lose(self, text: str) -> None:
+        """A device or the runtime is gone: message, link closed, buttons back to Connect."""
+        if self.link is not None:
+            link, self.link = self.link, None
+            link.close(timeout_s=2.0)
+        self.status = {}
+        self.pending_start = None
+        self.health.setText("not connected")
+        self.readout.setText("readouts: not connected")
+        self.fire("lost")
+        self.say(text, error=True)
+
+    def _on_runtime_gone(self, payload: dict[str, Any]) -> None:
+        if self.state == State.CONNECTING:
+            reason = self.last_error or words.plain(payload.get("reason", ""))
+            self.link = None
+            self.fire("connect_failed")
+            self.say(f"Could not connect: {reason}", error=True)
+            return
+        folder = self.session_folder
+        if folder is not None:
+            self._close_aborted(folder)
+            self.session_folder = None
+            self.last_end = {"status": "aborted", "reason": "runtime process exited",
+                             "folder": str(folder)}  # fmt: skip
+            self.session_ended.emit(self.last_end)
+        text = words.RUNTIME_DIED
+        if folder is not None:
+            text += f" The session in {folder} is marked aborted."
+        self._lose(text)
+        self.refresh_sessions()
+
+    def _close_aborted(self, folder: Path) -> None:
+        """Mark a session the dead runtime left 'running' as aborted (session.json only)."""
+        import json
+
+        from smabench.sessions import write_meta
+
+        path = folder / "session.json"
+        try:
+            meta = json.loads(path.read_text(encoding="utf-8"))
+            if meta.get("status") == "running":
+                meta.update(status="aborted", end_reason="the bench program stopped")
+                write_meta(folder, meta)
+        except (OSError, ValueError) as exc:
+            log.warning("could not mark %s aborted: %s", folder, exc)
+
+    def say(self, text: str, error: bool = False) -> None:
+        """The message line (plain words only)."""
+        if error:
+            self.last_error = text
+            log.warning("%s", text)
+        self.message.setText(text)
+        self.message.setStyleSheet("color: #c62828; font-weight: bold;" if error else "")
 
     def show_error(self, text: str) -> None:
-        self.last_error = text
-        self.statusBar().showMessage(text, 15000)
-        log.warning("%s", text)
+        self.say(words.plain(text), error=True)
 
     # ------------------------------------------------------------------ sessions
     def refresh_sessions(self) -> None:
+        root = self.sessions_dir
+        self.sessions_label.setText(f"Sessions folder: {root.resolve()}")
+        self.jobs.submit(lambda: read_session_rows(root), self._fill_sessions,
+                         lambda exc: self.show_error(str(exc)))  # fmt: skip
+
+    def _fill_sessions(self, rows: list[SessionRow]) -> None:
+        keep = self.selected_session()
         self.session_list.clear()
-        if not self.sessions_dir.is_dir():
-            return
-        folders = sorted((p for p in self.sessions_dir.iterdir() if (p / "session.json").is_file()),
-                         key=lambda p: p.stat().st_mtime, reverse=True)  # fmt: skip
-        for folder in folders:
-            item = QtWidgets.QListWidgetItem(folder.name)
-            item.setData(QtCore.Qt.ItemDataRole.UserRole, str(folder))
-            self.session_list.addItem(item)
+        for r in rows:
+            item = QtWidgets.QTreeWidgetItem([
+                r.started, "–" if r.load_kg is None else f"{r.load_kg:g} kg", r.protocol,
+                r.status, r.folder.name])  # fmt: skip
+            item.setData(0, QtCore.Qt.ItemDataRole.UserRole, str(r.folder))
+            self.session_list.addTopLevelItem(item)
+            if keep is not None and r.folder == keep:
+                self.session_list.setCurrentItem(item)
+        for i in range(5):
+            self.session_list.resizeColumnToContents(i)
+        self.sessions_loaded = len(rows)
 
     def selected_session(self) -> Path | None:
         item = self.session_list.currentItem()
-        return Path(item.data(QtCore.Qt.ItemDataRole.UserRole)) if item else None
+        return Path(item.data(0, QtCore.Qt.ItemDataRole.UserRole)) if item else None
 
-    def open_session(self, folder: str | Path) -> None:
-        """Replay a recorded session in the plots."""
+    def open_session(self, folder: str | Path, after: Any = None) -> None:
+        """Replay a recorded session in the Replay tab (loaded off the GUI thread); then
+        ``after()``."""
         from smabench.sessions import load_session
 
-        try:
-            s = load_session(folder)
-        except ValueError as exc:
-            self.show_error(str(exc))
-            return
-        cols = {c: s.data[c] for c in s.data if c != "mode"}
-        if "temperature_est_C" not in cols and "temperature_C" in cols:
-            cols["temperature_est_C"] = cols["temperature_C"]
-        if "t_s" not in cols:
-            cols["t_s"] = np.arange(len(s), dtype=float)
-        cols.setdefault("cycle", np.zeros(len(s)))
-        self.buffer.clear()
-        self.loop_plot.reset()
-        self.time_plots.reset()
-        self.buffer.append_columns(cols)
-        self.time_plots.follow = False
-        self.loop_plot.update_from(self.buffer)
-        self.time_plots.update_from(self.buffer)
-        self.time_plots.show_all()
-        self.loop_plot.autoRange()
-        self.opened = Path(folder)
-        self.statusBar().showMessage(f"opened {Path(folder).name}: {len(s)} samples", 5000)
+        folder = Path(folder)
+        self.say(f"Opening {folder.name} …")
+
+        def done(s) -> None:
+            self.replay.show_session(folder, s, None)
+            self.tabs.setCurrentWidget(self.replay)
+            self.say(f"Replaying {folder.name} ({len(s)} samples) in the Replay tab.")
+            if after is not None:
+                after()
+
+        self.jobs.submit(lambda: load_session(folder), done,
+                         lambda exc: self.say(f"Cannot open {folder}: {words.plain(str(exc))}",
+                                              error=True))  # fmt: skip
 
     def open_selected(self) -> None:
         folder = self.selected_session()
-        if folder is not None:
-            self.open_session(folder)
-            self.tabs.setCurrentIndex(0)
+        if folder is None:
+            self.say("Choose a session in the list first.", error=True)
+            return
+        self.open_session(folder)
 
-    def export_session(self, folder: str | Path, out: str | Path) -> int:
+    def _dialog_for(self, title: str, mode: str, start: str) -> QtWidgets.QFileDialog:
+        """A non-native, non-modal file dialog (the E-STOP button stays usable beside it)."""
+        dlg = QtWidgets.QFileDialog(self, title, start)
+        dlg.setOption(QtWidgets.QFileDialog.Option.DontUseNativeDialog, True)
+        dlg.setWindowModality(QtCore.Qt.WindowModality.NonModal)
+        if mode == "dir":
+            dlg.setFileMode(QtWidgets.QFileDialog.FileMode.Directory)
+            dlg.setOption(QtWidgets.QFileDialog.Option.ShowDirsOnly, True)
+        else:
+            dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptMode.AcceptSave)
+            dlg.setNameFilter("CSV (*.csv)")
+        self._dialog = dlg
+        return dlg
+
+    def choose_sessions_dir(self) -> None:
+        dlg = self._dialog_for("Sessions folder", "dir", str(self.sessions_dir))
+        dlg.fileSelected.connect(lambda path: self.set_sessions_dir(path))
+        dlg.show()
+
+    def set_sessions_dir(self, path: str | Path) -> None:
+        self.sessions_dir = Path(path)
+        self.refresh_sessions()
+
+    def open_folder_dialog(self) -> None:
+        dlg = self._dialog_for("Open a session folder", "dir", str(self.sessions_dir))
+        dlg.fileSelected.connect(lambda path: self.open_session(path))
+        dlg.show()
+
+    def export_session(self, folder: str | Path, out: str | Path) -> None:
+        """Write the session's samples as one CSV (off the GUI thread)."""
         from smabench.sessions import export_csv, load_session
 
-        n = export_csv(load_session(folder), out)
-        self.statusBar().showMessage(f"{n} rows written to {out}", 5000)
-        return n
+        def done(n: int) -> None:
+            self.last_export_rows = n
+            self.say(f"{n} rows written to {out}.")
+
+        self.jobs.submit(lambda: export_csv(load_session(folder), out), done,
+                         lambda exc: self.say(f"Export failed: {words.plain(str(exc))}",
+                                              error=True))  # fmt: skip
 
     def export_dialog(self) -> None:
         folder = self.selected_session()
         if folder is None:
-            self.show_error("choose a session to export")
+            self.say("Choose a session to export in the list first.", error=True)
             return
-        out, _ = QtWidgets.QFileDialog.getSaveFileName(
-            self, "Export CSV", str(folder.with_suffix(".csv")), "CSV (*.csv)"
-        )
-        if out:
-            try:
-                self.export_session(folder, out)
-            except (ValueError, OSError) as exc:
-                self.show_error(str(exc))
+        dlg = self._dialog_for("Export CSV", "save", str(folder.with_suffix(".csv")))
+        dlg.fileSelected.connect(lambda out: self.export_session(folder, out))
+        dlg.show()
 
-    def fit_shown(self) -> dict[str, float] | None:
-        """Fit the chosen model to the chosen cycle of what the plots show; returns the figures."""
-        from smabench.physics.identify import FitError, fit_loop
+    def fit_selected(self) -> None:
+        """Fit the chosen model to the selected session (off the GUI thread); the result is
+        drawn in the Replay tab, over that session."""
+        folder = self.selected_session()
+        if folder is None:
+            self.say("Choose a session to fit in the list first.", error=True)
+            return
+        if self.fit_cycle.error():
+            self.say(f"Not fitted: {self.fit_cycle.error()}.", error=True)
+            return
+        model, cycle = self.fit_model.currentText(), self.fit_cycle.value()
+        self.last_fit = None
+        self.say(f"Fitting the {model} model to {folder.name} …")
 
-        if self.buffer.n == 0:
-            self.show_error("nothing to fit: open a session or run one")
-            return None
-        cycle = self.buffer.column("cycle")
-        want = self.fit_cycle.value()
-        finite_cycles = cycle[np.isfinite(cycle)]
-        chosen = float(finite_cycles.max()) if want < 0 and finite_cycles.size else float(want)
-        sel = cycle == chosen if np.isfinite(cycle).any() else np.ones(self.buffer.n, bool)
-        temp = self.buffer.column("temperature_est_C")[sel]
-        pos = self.buffer.column("position_mm")[sel]
-        ok = np.isfinite(temp) & np.isfinite(pos)
-        try:
-            fit = fit_loop(temp[ok], pos[ok], self.fit_model.currentText())
-        except (FitError, ValueError) as exc:
-            self.fit_text.setPlainText(f"fit failed: {exc}")
-            return None
-        self.loop_plot.show_model(temp[ok], fit.predict(temp[ok]))
-        lines = [f"model {fit.model} on cycle {chosen:.0f} ({fit.n_points} points)",
-                 f"rmse {fit.rmse_mm:.4f} mm   nrmse {fit.nrmse_percent:.3f} % of stroke   "
-                 f"ard {fit.ard_percent:.3f} %"]  # fmt: skip
-        lines += [f"  {k} = {v:.6g}" for k, v in fit.parameters.items()]
-        self.fit_text.setPlainText("\n".join(lines))
-        return {"nrmse_percent": fit.nrmse_percent, "rmse_mm": fit.rmse_mm}
+        def done(fit: dict[str, Any]) -> None:
+            def show() -> None:
+                self.replay.show_fit(fit["text"], fit["temp"], fit["model_mm"])
+                self.tabs.setCurrentWidget(self.replay)
+                self.last_fit = fit
+                self.say(f"Fitted {model} to {folder.name}, cycle {fit['cycle']}: nrmse "
+                         f"{fit['nrmse_percent']:.2f} % of stroke.")  # fmt: skip
+
+            if self.replay.folder != folder:  # drawn over the session it was fitted to
+                self.open_session(folder, after=show)
+            else:
+                show()
+
+        self.jobs.submit(lambda: fit_session(folder, model, cycle), done,
+                         lambda exc: self.say(f"Not fitted: {words.plain(str(exc))}",
+                                              error=True))  # fmt: skip
 
     # ------------------------------------------------------------------ closing
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802 (Qt name)
         self.timer.stop()
+        self.guard.remove()
+        if self.link is not None:
+            self.link.estop()
         self.disconnect_devices()
+        self.jobs.close()
         super().closeEvent(event)

@@ -1,0 +1,106 @@
+"""Plain words for what the runtime, the drivers and the libraries say (no Qt here).
+
+The operator sees sentences, never raw JSON, exception class names, command-line options or a
+serial library's message. :func:`plain` maps the messages the bench is known to produce; anything
+else is cleaned (class names, JSON, option hints removed) and kept short.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+
+_Rule = tuple[re.Pattern[str], Callable[[re.Match[str]], str]]
+
+
+def _rule(pattern: str, text: str | Callable[[re.Match[str]], str]) -> _Rule:
+    fn = text if callable(text) else (lambda _m, t=text: t)
+    return re.compile(pattern, re.IGNORECASE | re.DOTALL), fn
+
+
+LOST_DRIVER = (
+    "The current driver stopped answering (cable, USB or power?). Its output turns itself off; "
+    "the session was closed as aborted."
+)
+LOST_SENSOR = (
+    "The displacement sensor stopped answering (cable, power or network?). The output was turned "
+    "off and the session closed as aborted."
+)
+RUNTIME_DIED = (
+    "The bench program stopped unexpectedly. The driver turns its output off by itself when the "
+    "computer goes quiet; any running session was closed as aborted."
+)
+
+RULES: list[_Rule] = [
+    _rule(r"^e-stop$", "Stopped by the E-STOP."),
+    _rule(r"stopped by operator", "Stopped by the operator."),
+    _rule(r"protocol completed", "Completed."),
+    _rule(r"telemetry lost|driver link (is )?(lost|down)|link lost|LinkTimeout|LinkError",
+          LOST_DRIVER),
+    _rule(r"displacement sensor lost", LOST_SENSOR),
+    _rule(r"runtime process (exited|is not running)|BrokenPipe", RUNTIME_DIED),
+    _rule(r"mock bench (exited|did not become ready)",
+          "The built-in mock bench could not start."),
+    _rule(r"(could not open port|No such file or directory: '?(/dev/\S+?)'?\W|SerialException)",
+          "The current driver's serial port cannot be opened: is the driver plugged in, is this "
+          "the right port, and is no other program using it?"),
+    _rule(r"Connection refused|timed out|No route to host|ModbusException|ConnectionException",
+          "The displacement sensor does not answer: check its address, port, cable and power."),
+    _rule(r"protocol '(\w+)' is a position reference",
+          lambda m: f"The {m.group(1)} protocol is a position reference: choose PID, FF or "
+          "FF+PID in the Controller panel, or an open-loop protocol."),
+    _rule(r"protocol '(\w+)' is open loop",
+          lambda m: f"The {m.group(1)} protocol sets the current directly: choose Open loop in "
+          "the Controller panel, or a position reference (step, staircase, sine, triangle)."),
+    _rule(r"interlock: commanded current ([\d.]+) A outside 0 … ([\d.]+) A",
+          lambda m: f"Stopped by the current limit: {float(m.group(1)):.2f} A was asked for, the "
+          f"limit is {float(m.group(2)):.2f} A."),
+    _rule(r"interlock: estimated temperature ([\d.]+) °C above ([\d.]+)",
+          lambda m: f"Stopped by the temperature limit: the wire was estimated at "
+          f"{float(m.group(1)):.0f} °C, the limit is {float(m.group(2)):.0f} °C."),
+    _rule(r"interlock: position ([-\d.]+) mm outside ([-\w.]+) … ([-\w.]+) mm",
+          lambda m: f"Stopped by the position limits: the wire reached {float(m.group(1)):.3f} mm,"
+          f" outside {m.group(2)} … {m.group(3)} mm."),
+    _rule(r"current driver fault: (.*)",
+          lambda m: f"The current driver reported a fault: {_clean(m.group(1))}."),
+    _rule(r"maximum duration ([\d.]+) s reached",
+          lambda m: f"Stopped: the session reached its maximum duration ({m.group(1)} s)."),
+    _rule(r"a session is running", "A session is already running."),
+    _rule(r"unreachable|not reachable|outside the reachable",
+          lambda m: "The reference asks for positions the wire cannot reach under this load: "
+          "lower the amplitude or move the offset."),
+]
+
+
+def _clean(text: str) -> str:
+    """Drop command echoes, exception class names, JSON, option hints and errno prefixes."""
+    text = re.sub(r"^\w+:\s+(?=[A-Z]\w*(Error|Exception|Timeout)\b)", "", text)  # "start: "
+    text = re.sub(r"\b[A-Z]\w*(Error|Exception|Timeout):\s*", "", text)
+    text = re.sub(r"\{.*\}", "", text, flags=re.DOTALL)
+    text = re.sub(r"\((?:[^()]*--[^()]*)\)", "", text)
+    text = re.sub(r"\s--[\w-]+(\s[\w|.,-]+)?", "", text)
+    text = re.sub(r"\[Errno \d+\]\s*", "", text)
+    text = re.sub(r"\s+", " ", text).strip(" :;,")
+    return text
+
+
+def plain(text: str, limit: int = 240) -> str:
+    """The operator's sentence for a runtime or library message."""
+    text = str(text or "").strip()
+    for pattern, fn in RULES:
+        m = pattern.search(text)
+        if m:
+            return fn(m)
+    text = _clean(text)
+    if not text:
+        return "Something went wrong (no details)."
+    text = text[0].upper() + text[1:]
+    if len(text) > limit:
+        text = text[: limit - 1].rsplit(" ", 1)[0] + " …"
+    return text if text.endswith((".", "…", "?", "!")) else text + "."
+
+
+def device_lost(reason: str) -> bool:
+    """Whether a session's end reason means a device is gone (the link must be reopened)."""
+    return bool(re.search(r"telemetry lost|sensor lost|link lost|LinkError|LinkTimeout|"
+                          r"SerialException|could not open port", str(reason), re.IGNORECASE))

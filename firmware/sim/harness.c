@@ -32,6 +32,8 @@
 #include "sim_elf.h"
 #include "sim_irq.h"
 
+#include "boot.h" /* --bootloader: the Arduino bootloader and auto-reset */
+
 /* static inline helpers for the UART input FIFO declared in avr_uart.h (read-only use here) */
 DEFINE_FIFO(uint16_t, uart_fifo);
 
@@ -370,14 +372,15 @@ static uint64_t now_ns(void)
 
 static void usage(void)
 {
-    fprintf(stderr, "usage: smabench-sim [--report] [--r-ohm R] [--ambient C] [-v] firmware.elf\n");
+    fprintf(stderr, "usage: smabench-sim [--report] [--r-ohm R] [--ambient C] [-v] firmware.elf\n"
+                    "       smabench-sim --bootloader BOOT.hex [options] (app.elf | app.hex | --blank)\n");
     exit(2);
 }
 
 int main(int argc, char **argv)
 {
     const char *elf = NULL;
-    int report = 0;
+    int report = 0, k;
     for (int i = 1; i < argc; i++) {
         if (!strcmp(argv[i], "--report"))
             report = 1;
@@ -387,6 +390,8 @@ int main(int argc, char **argv)
             r_ohm = atof(argv[++i]);
         else if (!strcmp(argv[i], "--ambient") && i + 1 < argc)
             ambient_c = atof(argv[++i]);
+        else if ((k = boot_option(argc, argv, i)) > 0)
+            i += k - 1;
         else if (argv[i][0] == '-')
             usage();
         else if (!elf)
@@ -394,7 +399,7 @@ int main(int argc, char **argv)
         else
             usage();
     }
-    if (!elf || !(r_ohm > 0.0))
+    if (!boot_args_ok(elf) || !(r_ohm > 0.0))
         usage();
 
     /* Our control output keeps the real stdout; anything libsimavr prints goes to stderr. */
@@ -417,14 +422,17 @@ int main(int argc, char **argv)
 
     elf_firmware_t fw;
     memset(&fw, 0, sizeof fw);
-    if (elf_read_firmware(elf, &fw) != 0)
+    if (!boot_enabled() && elf_read_firmware(elf, &fw) != 0)
         die("cannot read %s", elf);
     avr = avr_make_mcu_by_name("atmega328p");
     if (!avr)
         die("simavr has no atmega328p");
     avr_init(avr);
     fw.frequency = F_CPU;
-    avr_load_firmware(avr, &fw);
+    if (boot_enabled())
+        boot_setup(avr, elf); /* boot.c: bootloader + application (or none) */
+    else
+        avr_load_firmware(avr, &fw);
     avr->frequency = F_CPU;
     avr->vcc = avr->avcc = avr->aref = 5000;
     avr->log = verbose ? LOG_TRACE : LOG_ERROR;
@@ -467,6 +475,8 @@ int main(int argc, char **argv)
     fcntl(pty_master, F_SETFL, fcntl(pty_master, F_GETFL) | O_NONBLOCK);
     fcntl(pty_master, F_SETFD, FD_CLOEXEC);
     fcntl(pty_slave, F_SETFD, FD_CLOEXEC);
+    if (boot_enabled())
+        boot_port_init(avr, &pty_slave); /* auto-reset: opens of the port must be seen */
 
     model_update(1);
     fprintf(ctl, "PTY %s\n", name);
@@ -503,6 +513,11 @@ int main(int argc, char **argv)
         }
         total_cycles += avr->cycle - last_cycle;
         last_cycle = avr->cycle;
+        enum boot_port_state port = boot_enabled() ? boot_port_poll(avr, pty_master) : BOOT_PORT_OPEN;
+        if (port != BOOT_PORT_OPEN) { /* closed: nobody reads; opened: the MCU is being reset */
+            txq_len = 0;
+            rxq_tail = rxq_head;
+        }
         if (resets != resets_reported) {
             fprintf(stderr, "smabench-sim: AVR reset at t=%.3f ms (MCUSR=0x%02x%s)\n",
                     total_cycles / (F_CPU / 1000.0), reset_mcusr,
@@ -535,7 +550,8 @@ int main(int argc, char **argv)
         for (;;) {
             struct pollfd pfd[2] = {
                 {.fd = 0, .events = POLLIN},
-                {.fd = pty_master, .events = POLLIN | (txq_len ? POLLOUT : 0)},
+                {.fd = port == BOOT_PORT_CLOSED ? -1 : pty_master,
+                 .events = POLLIN | (txq_len ? POLLOUT : 0)},
             };
             struct timespec to = {0, 0};
             if (ahead > 0) {

@@ -1,0 +1,261 @@
+/* The Arduino's bootloader and auto-reset for the simavr harness: see boot.h and
+ * firmware/sim/README.md ("Bootloader and auto-reset"). */
+#define _GNU_SOURCE
+#include "boot.h"
+
+#include <errno.h>
+#include <poll.h>
+#include <stdarg.h>
+#include <stdint.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+#include "avr_watchdog.h"
+#include "sim_elf.h"
+
+#define BOOT_F_CPU 16000000u
+#define A_MCUSR 0x54    /* ATmega328P data-space address */
+#define BIT_EXTRF 0x02  /* MCUSR: external (reset pin) reset */
+#define A_WDTCSR 0x60
+#define WDT_WDP 0x27    /* WDP3 (bit 5), WDP2..0 */
+#define WDT_ON 0x48     /* WDIE | WDE */
+
+static const char *boot_hex;  /* --bootloader HEX */
+static int blank;             /* --blank */
+static uint32_t boot_base;    /* first address of the bootloader image, bytes */
+static int port_was_open;
+static unsigned long port_opens;
+static int reset_pending;
+static void (*plain_run)(avr_t *); /* avr->run when nothing (watchdog, us) has swapped it */
+
+static void boot_die(const char *fmt, ...)
+{
+    va_list ap;
+    va_start(ap, fmt);
+    fputs("smabench-sim: ", stderr);
+    vfprintf(stderr, fmt, ap);
+    fputc('\n', stderr);
+    va_end(ap);
+    exit(2);
+}
+
+int boot_option(int argc, char **argv, int i)
+{
+    if (!strcmp(argv[i], "--bootloader") && i + 1 < argc) {
+        boot_hex = argv[i + 1];
+        return 2;
+    }
+    if (!strcmp(argv[i], "--blank")) {
+        blank = 1;
+        return 1;
+    }
+    return 0;
+}
+
+int boot_enabled(void) { return boot_hex != NULL; }
+
+int boot_args_ok(const char *app)
+{
+    if (blank && !boot_hex)
+        return 0;
+    return blank ? app == NULL : app != NULL;
+}
+
+static int ends_with(const char *s, const char *tail)
+{
+    size_t n = strlen(s), m = strlen(tail);
+    return n >= m && !strcasecmp(s + n - m, tail);
+}
+
+static int hex_byte(const char *s, unsigned *out)
+{
+    unsigned v = 0;
+    for (int k = 0; k < 2; k++) {
+        char c = s[k];
+        v <<= 4;
+        if (c >= '0' && c <= '9')
+            v |= (unsigned)(c - '0');
+        else if (c >= 'A' && c <= 'F')
+            v |= (unsigned)(c - 'A' + 10);
+        else if (c >= 'a' && c <= 'f')
+            v |= (unsigned)(c - 'a' + 10);
+        else
+            return -1;
+    }
+    *out = v;
+    return 0;
+}
+
+/* Copy an Intel hex image into flash; returns [lowest address, end) of what it wrote. Our own
+ * reader: simavr 1.6's read_ihex_chunks rejects record type 03 (start segment address), which
+ * Debian's optiboot_atmega328.hex ends with. Records 00 data, 01 end, 02/04 extended address;
+ * 03/05 (start addresses) are ignored; every checksum is checked. */
+static void load_hex(avr_t *avr, const char *path, uint32_t *lo, uint32_t *hi)
+{
+    FILE *f = fopen(path, "r");
+    if (!f)
+        boot_die("cannot open %s: %s", path, strerror(errno));
+    char line[600];
+    uint32_t base = 0;
+    unsigned lineno = 0, bytes = 0;
+    int done = 0;
+    *lo = UINT32_MAX;
+    *hi = 0;
+    while (!done && fgets(line, sizeof line, f)) {
+        lineno++;
+        size_t len = strcspn(line, "\r\n");
+        if (len == 0)
+            continue;
+        unsigned n, ah, al, type, b, sum = 0;
+        if (line[0] != ':' || len < 11 || hex_byte(line + 1, &n) || len != 11 + 2 * n ||
+            hex_byte(line + 3, &ah) || hex_byte(line + 5, &al) || hex_byte(line + 7, &type))
+            boot_die("%s:%u: not an Intel hex record", path, lineno);
+        uint8_t data[256];
+        sum = n + ah + al + type;
+        for (unsigned k = 0; k <= n; k++) {
+            if (hex_byte(line + 9 + 2 * k, &b))
+                boot_die("%s:%u: not an Intel hex record", path, lineno);
+            sum += b;
+            if (k < n)
+                data[k] = (uint8_t)b;
+        }
+        if (sum & 0xff)
+            boot_die("%s:%u: checksum error", path, lineno);
+        uint32_t a = base + (ah << 8 | al);
+        switch (type) {
+        case 0:
+            if ((uint64_t)a + n > (uint64_t)avr->flashend + 1)
+                boot_die("%s:%u: data at 0x%05x is beyond the flash (0x%05x)", path, lineno, a,
+                         avr->flashend + 1);
+            memcpy(avr->flash + a, data, n);
+            bytes += n;
+            if (n && a < *lo)
+                *lo = a;
+            if (a + n > *hi)
+                *hi = a + n;
+            break;
+        case 1:
+            done = 1;
+            break;
+        case 2:
+        case 4:
+            if (n != 2)
+                boot_die("%s:%u: bad extended address record", path, lineno);
+            base = (uint32_t)(data[0] << 8 | data[1]) << (type == 2 ? 4 : 16);
+            break;
+        default: /* 03, 05: start address, meaningless for flash */
+            break;
+        }
+    }
+    fclose(f);
+    if (!done || !bytes)
+        boot_die("%s: %s", path, bytes ? "no end-of-file record" : "no data");
+}
+
+/* simavr 1.6 reads the old prescaler after storing the new one, so a timeout changed while the
+ * watchdog runs takes effect only after the next WDR; optiboot shortens it to 16 ms to start the
+ * application (after avrdude's last command, or on a byte that is no STK500 command) and then
+ * waits for it without WDR, so the application would start 1 s late. Re-arm on a change, as a WDR
+ * does (on the chip the counter runs on, so this is at most the chip's timeout). */
+static avr_io_write_t wdt_write_simavr;
+static void *wdt_write_param;
+
+static void wdt_write(avr_t *avr, avr_io_addr_t addr, uint8_t v, void *param)
+{
+    uint8_t before = avr->data[A_WDTCSR];
+    wdt_write_simavr(avr, addr, v, param);
+    uint8_t after = avr->data[A_WDTCSR];
+    if ((after & WDT_ON) && ((before ^ after) & WDT_WDP))
+        avr_ioctl(avr, AVR_IOCTL_WATCHDOG_RESET, NULL);
+}
+
+static void wdt_fix(avr_t *avr)
+{
+    int io = AVR_DATA_TO_IO(A_WDTCSR);
+    if (!avr->io[io].w.c)
+        return;
+    wdt_write_simavr = avr->io[io].w.c;
+    wdt_write_param = avr->io[io].w.param;
+    avr->io[io].w.c = wdt_write;
+    avr->io[io].w.param = wdt_write_param;
+}
+
+void boot_setup(avr_t *avr, const char *app)
+{
+    uint32_t app_end = 0, lo, hi;
+    if (app && ends_with(app, ".hex")) {
+        load_hex(avr, app, &lo, &app_end);
+    } else if (app) {
+        elf_firmware_t fw;
+        memset(&fw, 0, sizeof fw);
+        if (elf_read_firmware(app, &fw) != 0)
+            boot_die("cannot read %s", app);
+        fw.frequency = BOOT_F_CPU;
+        avr_load_firmware(avr, &fw);
+        app_end = fw.flashbase + fw.flashsize;
+    }
+    load_hex(avr, boot_hex, &lo, &hi);
+    if (app_end > lo)
+        boot_die("the application (%u B) runs into the bootloader at 0x%04x", app_end, lo);
+    boot_base = lo;
+    wdt_fix(avr);
+    /* BOOTRST: the reset vector is the start of the boot section */
+    avr->reset_pc = avr->pc = boot_base;
+    avr->codeend = avr->flashend;
+    fprintf(stderr, "smabench-sim: bootloader %s at 0x%04x..0x%04x, application %s (%u B)\n",
+            boot_hex, lo, hi, app ? app : "blank", app_end);
+}
+
+void boot_port_init(avr_t *avr, int *pty_slave)
+{
+    /* the termios set on the slave (raw, 115200) stay with the pty after the close */
+    if (*pty_slave >= 0)
+        close(*pty_slave);
+    *pty_slave = -1;
+    plain_run = avr->run;
+}
+
+/* One-shot avr->run: the external reset happens inside avr_run, as the watchdog's does, so the
+ * harness accounts for it the same way (cycle counter restarted, reset hook called). */
+static void run_external_reset(avr_t *avr)
+{
+    avr->run = plain_run;
+    avr_reset(avr);
+    avr->data[A_MCUSR] |= BIT_EXTRF;
+}
+
+static void request_reset(avr_t *avr)
+{
+    if (avr->run == plain_run) { /* not while simavr's watchdog reset is under way */
+        avr->run = run_external_reset;
+        reset_pending = 0;
+    } else if (avr->run != run_external_reset) {
+        reset_pending = 1;
+    }
+}
+
+enum boot_port_state boot_port_poll(avr_t *avr, int pty_master)
+{
+    struct pollfd pfd = {.fd = pty_master, .events = 0};
+    if (reset_pending)
+        request_reset(avr);
+    if (poll(&pfd, 1, 0) < 0)
+        return port_was_open ? BOOT_PORT_OPEN : BOOT_PORT_CLOSED;
+    int open = !(pfd.revents & POLLHUP);
+    if (open == port_was_open)
+        return open ? BOOT_PORT_OPEN : BOOT_PORT_CLOSED;
+    port_was_open = open;
+    if (!open)
+        return BOOT_PORT_CLOSED;
+    /* the DTR pulse: what the client wrote before the reset never reaches the bootloader */
+    uint8_t junk[256];
+    while (read(pty_master, junk, sizeof junk) > 0)
+        ;
+    port_opens++;
+    fprintf(stderr, "smabench-sim: port opened (%lu): external reset into the bootloader\n",
+            port_opens);
+    request_reset(avr);
+    return BOOT_PORT_OPENED;
+}

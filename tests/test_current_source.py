@@ -5,14 +5,17 @@ No fixed sleeps: every wait is on a condition with a deadline."""
 
 from __future__ import annotations
 
+import logging
 import statistics
 import threading
 import time
 
 import pytest
 import serial
+
 from smabench.drivers import protocol as p
 from smabench.drivers.current_source import (
+    CONNECT_WAIT_S,
     CommandRejected,
     CurrentSource,
     CurrentSourceError,
@@ -84,15 +87,18 @@ def test_commands_before_connect_raise():
 
 
 def test_round_trip_over_pty(cs):
+    tx0 = cs.counters().tx_frames
     rts = [cs.ping() for _ in range(200)]
     med = statistics.median(rts)
     print(f"\nPING round trip over the pty: median {med * 1e3:.2f} ms, max {max(rts) * 1e3:.2f} ms")
-    assert med < 0.02
+    assert all(rt > 0 for rt in rts) and cs.last_round_trip_s == rts[-1]
+    n = cs.counters()
+    assert n.tx_frames - tx0 >= 200 and n.timeouts == 0  # (speed: `smabench bench link`)
 
 
 # ------------------------------------------------------------------ current control
 def test_set_current_follows_within_50ms(cs):
-    assert cs.set_current(1.2) == p.Status.OK
+    assert cs.set_current(1.2, wait=True) == p.Status.OK
     cs.enable(True)
     first = cs.wait_telemetry(lambda t: t.enabled and t.setpoint_a == pytest.approx(1.2), 0.5)
     settled = cs.wait_telemetry(lambda t: abs(t.current_a - 1.2) <= 0.05 * 1.2, 0.5)
@@ -110,7 +116,11 @@ def test_set_current_follows_within_50ms(cs):
 def test_clamping_beyond_limit(cs):
     cs.set_limits(1.0, 0.25)
     assert cs.limit_a == 1.0
-    assert cs.set_current(1.5) == p.Status.CLAMPED
+    assert cs.set_current(1.5, wait=True) == p.Status.CLAMPED
+    assert cs.setpoint_status == p.Status.CLAMPED
+    cs.set_current(0.5)  # posted: its ACK (OK) is checked in the background
+    wait_until(lambda: cs.setpoint_status == p.Status.OK, 0.5, "setpoint ACK OK")
+    cs.set_current(1.5)
     cs.enable(True)
     t = cs.wait_telemetry(lambda t: abs(t.current_a - 1.0) < 0.02, 0.5)
     assert t.setpoint_a == pytest.approx(1.0)
@@ -211,15 +221,16 @@ def test_driver_gone_device_turns_off(dev):
     src.set_current(1.0)
     src.enable(True)
     src.wait_telemetry(lambda t: t.enabled, 0.5)
-    src._stop.set()  # kill the owner thread, no ENABLE 0
-    src._wake_owner()
-    src._thread.join(1.0)
-    src._close_port()
+    link = src._link
+    link._stop.set()  # kill the owner thread, no ENABLE 0
+    link._wake_owner()
+    link._thread.join(1.0)
+    link._close_port()
     t_kill = time.monotonic()
     wait_until(lambda: not dev.firmware.enabled, 0.5, "device output off")
     assert time.monotonic() - t_kill < 0.25 + 0.1
     assert dev.firmware.flags & F.HOST_TIMEOUT
-    src._thread = None
+    link._thread = None
 
 
 # ------------------------------------------------------------------ line errors
@@ -330,7 +341,10 @@ def test_subscribe_and_history(cs):
 class FakeSerial:
     """Serial port stand-in: records what the driver writes, answers with a MockFirmware."""
 
-    def __init__(self, respond: bool = True) -> None:
+    def __init__(self, respond: bool = True, boot_s: float = 0.0) -> None:
+        self.boot_s = boot_s  # after every open: silent this long (an Arduino's bootloader)
+        self.opened_at = time.monotonic()
+        self.opens = 1
         self.written = bytearray()
         self.frames: list[bytes] = []
         self.fw = MockFirmware(0.0)
@@ -345,7 +359,7 @@ class FakeSerial:
         with self._cond:
             self.written += data
             self.frames += [bytes(f) + b"\x00" for f in bytes(data).split(b"\x00")[:-1]]
-            if self.respond:
+            if self.respond and time.monotonic() - self.opened_at >= self.boot_s:
                 self._in += self.fw.receive(bytes(data), 0.0)
                 self._cond.notify_all()
         return len(data)
@@ -372,6 +386,9 @@ class FakeSerial:
 
     def open(self) -> None:
         self.is_open = True
+        self.opened_at = time.monotonic()
+        self.opens += 1
+        self.fw = MockFirmware(0.0)  # opening resets the board
 
     def close(self) -> None:
         self.is_open = False
@@ -380,7 +397,7 @@ class FakeSerial:
 # (method call, frame the driver must write), seq counting from the connect() frames
 REPLAY = [
     (lambda cs: cs.enable(True), "06020201bfd400"),
-    (lambda cs: cs.set_current(1.0), "070303e80334ef00"),
+    (lambda cs: cs.set_current(1.0, wait=True), "070303e80334ef00"),
     (lambda cs: cs.set_limits(1.5, 0.5), "090404dc05f401524200"),
     (lambda cs: cs.set_telemetry(0.005), "0405050503802c00"),
     (lambda cs: cs.clear_faults(), "0506066fd700"),
@@ -422,7 +439,7 @@ def test_keepalive_bytes():
 
 def test_retry_then_timeout_bytes():
     fake = FakeSerial(respond=False)
-    cs = CurrentSource(fake, keepalive=False, ack_timeout_s=0.05, retries=2)
+    cs = CurrentSource(fake, keepalive=False, ack_timeout_s=0.05, retries=2, connect_wait_s=0)
     cs.open()
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
@@ -441,7 +458,7 @@ def test_auto_reconnect_after_port_error():
     cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0)
     cs.connect()
     fake.fail_next_read = True
-    cs._wake_owner()
+    cs._link._wake_owner()
     wait_until(lambda: cs.counters().reconnects == 1, 2.0, "automatic reconnect")
     wait_until(lambda: cs.link_ok or cs.ping(), 1.0, "link back")
     cs.ping()
@@ -455,7 +472,7 @@ def test_auto_reconnect_after_port_error():
 
 def test_loop_url_no_ack_times_out():
     """loop:// echoes the driver's own frames: they are no ACKs, so the handshake times out."""
-    cs = CurrentSource("loop://", ack_timeout_s=0.03, retries=1)
+    cs = CurrentSource("loop://", ack_timeout_s=0.03, retries=1, connect_wait_s=0)
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.connect()
@@ -490,3 +507,131 @@ def test_speed_factor():
         b = src.wait_telemetry(lambda t: t.host_time - a.host_time > 0.2, 1.0)
         ratio = (b.t_ms - a.t_ms) / 1e3 / (b.host_time - a.host_time)
         assert 3.0 < ratio < 5.0
+
+
+# ------------------------------------------------------------------ setpoints for a control loop
+def test_set_current_does_not_wait_for_the_ack():
+    """A posted setpoint returns before any ACK can exist (the device never answers); a newer
+    one replaces it while it waits behind the command in flight."""
+    fake = FakeSerial()
+    cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0)
+    cs.connect()
+    fake.respond = False
+    assert cs.set_current(0.5) is None  # returned: no ACK will ever come
+    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.SET_CURRENT, 1.0, "sent")
+    for k in range(10):  # queued behind the unanswered one: only the newest survives
+        assert cs.set_current(0.1 * k) is None
+    assert cs.counters().setpoints_superseded == 9
+    fake.respond = True
+    wait_until(lambda: cs.setpoint_status == p.Status.OK, 2.0, "the newest setpoint acknowledged")
+    sent = [p.decode_frame(f) for f in fake.frames if f != b"\x00"]
+    setpoints = [x.payload for x in sent if x.type == p.MsgType.SET_CURRENT]
+    assert setpoints[-1] == p.set_current(0.9)[1]  # the newest value went out, never a stale one
+    assert fake.fw.setpoint_ma == 900
+    assert cs.setpoint_errors >= 1  # the unanswered one
+    cs.close()
+
+
+def test_every_setpoint_is_sent_even_when_unchanged():
+    """No 'unchanged, skip': the setpoint renews the firmware's lease, so the same value sent
+    on every tick goes out every time; keepalive PINGs are never setpoints."""
+    fake = FakeSerial()
+    cs = CurrentSource(fake, telemetry_period_s=0)
+    cs.connect()
+
+    def n_setpoints() -> int:
+        sent = [p.decode_frame(f) for f in fake.frames if f != b"\x00"]
+        return sum(1 for x in sent if x.type == p.MsgType.SET_CURRENT)
+
+    for i in range(20):
+        cs.set_current(0.7)
+        wait_until(lambda i=i: n_setpoints() == i + 1, 1.0, f"setpoint {i + 1} on the line")
+    assert fake.fw.setpoint_ma == 700
+    assert cs.counters().setpoints_superseded == 0
+    cs.close()
+
+
+def test_make_safe_goes_ahead_of_queued_setpoints():
+    fake = FakeSerial()
+    cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0)
+    cs.connect()
+    cs.set_current(1.0, wait=True)
+    cs.enable(True)
+    fake.respond = False
+    cs.set_current(0.8)  # in flight, unanswered
+    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.SET_CURRENT, 1.0, "sent")
+    cs.set_current(0.9)  # queued
+    fake.respond = True
+    assert cs.make_safe() is True
+    sent = [p.decode_frame(f) for f in fake.frames if f != b"\x00"]
+    i08 = [x.payload for x in sent].index(p.set_current(0.8)[1])
+    # after the unanswered 0.8 A: ENABLE 0 at once (no retry of the 0.8 A), the 0.9 A dropped
+    assert [(x.type, x.payload) for x in sent[i08 + 1 :]] == [(p.MsgType.ENABLE, b"\x00")]
+    assert not fake.fw.enabled
+    cs.close()
+
+
+# ------------------------------------------------------------------ auto-reset on open (Arduino)
+def test_connect_waits_for_the_bootloader(caplog):
+    """Opening the port resets the device (auto-reset), which stays silent for 1 s: the
+    handshake keeps trying, says why at INFO, and connects."""
+    with SerialDevice(boot_delay_s=1.0) as dev:
+        src = CurrentSource(dev.port_name, telemetry_period_s=0.005)
+        with caplog.at_level(logging.INFO, logger="smabench.drivers.current_source"):
+            info = src.connect()
+        assert info.name == "SMA-CD328-MOCK"
+        assert dev.resets == 1
+        assert src.counters().retries >= 2  # IDENTIFY went unanswered while it booted
+        assert any("bootloader" in r.getMessage() for r in caplog.records)
+        src.wait_telemetry(timeout_s=1.0)
+        assert dev.firmware.start_ms >= 1000  # device clock: started after the boot delay
+        src.set_current(0.5)
+        src.enable(True)
+        src.wait_telemetry(lambda t: t.enabled and t.current_a > 0.45, 1.0)
+        # an explicit reconnect reopens the port: the board resets again, and it still connects
+        boots_before = dev.resets
+        src.reconnect()
+        assert dev.resets == boots_before + 1
+        t = src.wait_telemetry(timeout_s=1.0)
+        assert not t.enabled  # a fresh firmware: output off until the host enables it
+        assert src.counters().reconnects == 1
+        src.close()
+
+
+def test_without_the_boot_wait_the_reset_device_is_missed():
+    """The fake really is silent after open: one handshake try alone fails."""
+    with SerialDevice(boot_delay_s=1.0) as dev:
+        src = CurrentSource(dev.port_name, connect_wait_s=0)
+        with pytest.raises(LinkTimeout):
+            src.connect()
+        src.close()
+
+
+def test_connect_gives_up_after_the_boot_wait():
+    fake = FakeSerial(respond=False)
+    cs = CurrentSource(fake, keepalive=False, ack_timeout_s=0.05, retries=1, connect_wait_s=0.5)
+    with pytest.raises(LinkTimeout):
+        cs.connect()
+    # tries on and on while the wait lasts (2 frames per try), then gives up
+    idents = [f for f in fake.frames if f != b"\x00"]
+    assert len(idents) >= 2 * 3
+    assert pytest.approx(2.5) == CONNECT_WAIT_S
+    cs.close()
+
+
+def test_auto_reconnect_waits_for_the_bootloader():
+    """After a port error the link reopens the port, which resets the board again: the
+    resync handshake waits for its bootloader too."""
+    fake = FakeSerial(boot_s=0.4)
+    # one resync attempt only: the boot wait inside the handshake must carry it
+    cs = CurrentSource(
+        fake, keepalive=False, telemetry_period_s=0, ack_timeout_s=0.05, max_reconnect_attempts=1
+    )
+    cs.connect()
+    fake.fail_next_read = True
+    cs._link._wake_owner()
+    wait_until(lambda: cs.counters().reconnects == 1, 3.0, "automatic reconnect")
+    assert fake.opens == 2  # created open, reopened once by the link
+    assert cs.counters().retries >= 2  # the IDENTIFY after the reopen met the bootloader
+    cs.ping()
+    cs.close()

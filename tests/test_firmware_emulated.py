@@ -174,7 +174,7 @@ def test_set_current_follows(cs, sim):
 
 def test_clamping(cs):
     cs.set_limits(0.8, HOST_TIMEOUT_S)
-    assert cs.set_current(1.5) == p.Status.CLAMPED
+    assert cs.set_current(1.5, wait=True) == p.Status.CLAMPED
     cs.enable(True)
     t = cs.wait_telemetry(lambda t: abs(t.current_a - 0.8) <= 0.05, 2.0)
     assert t.setpoint_a == pytest.approx(0.8)

@@ -19,16 +19,24 @@ plant simulation::
 Test hooks: :meth:`inject_to_host` / :meth:`inject_to_device` put raw bytes (noise) on the line,
 :meth:`pause` freezes the device (a hung MCU: no stepping, no reading), :meth:`stop` makes it
 disappear (the host's port then reports an I/O error).
+
+``boot_delay_s`` emulates an Arduino's auto-reset: every time the host opens the port (DTR) the
+MCU resets into its bootloader, which swallows what the host sends and stays silent for
+``boot_delay_s`` (optiboot: about 1 s) before the firmware starts afresh (output off, default
+limits). Every open of the pty by the host is seen through inotify (``IN_OPEN``, Linux).
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import dataclasses
 import errno
 import logging
 import os
 import select
+import struct
 import threading
 import time
 import tty
@@ -39,6 +47,20 @@ from smabench.drivers.mock.firmware import Electrical, MockFirmware
 log = logging.getLogger(__name__)
 
 StepHook = Callable[[float, float, MockFirmware], Electrical | None]
+
+_IN_OPEN, _IN_CLOSE = 0x20, 0x08 | 0x10  # <sys/inotify.h>
+_INOTIFY_EVENT = struct.Struct("iIII")  # wd, mask, cookie, len (no name for a file watch)
+
+
+def _watch_opens(path: str) -> int:
+    """A non-blocking inotify fd reporting opens and closes of ``path`` (closes too, so that
+    two opens in a row are not merged into one event)."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    fd = libc.inotify_init1(os.O_NONBLOCK | os.O_CLOEXEC)
+    if fd < 0 or libc.inotify_add_watch(fd, path.encode(), _IN_OPEN | _IN_CLOSE) < 0:
+        err = ctypes.get_errno()
+        raise OSError(err, f"inotify on {path}: {os.strerror(err)}")
+    return fd
 
 
 class SerialDevice:
@@ -54,6 +76,8 @@ class SerialDevice:
             a returned :class:`Electrical` becomes the state used for that step and after.
         max_catch_up_ms: when the thread falls further behind than this (a long GC pause, an
             overloaded machine), device time skips ahead instead of running a burst of steps.
+        boot_delay_s: None (default): no auto-reset. A number: every open of the port resets
+            the device, silent for this long (device time, s) before a fresh firmware starts.
     """
 
     def __init__(
@@ -65,6 +89,7 @@ class SerialDevice:
         electrical: Electrical | None = None,
         on_step: StepHook | None = None,
         max_catch_up_ms: float = 100.0,
+        boot_delay_s: float | None = None,
     ) -> None:
         if speed <= 0 or step_ms <= 0:
             raise ValueError("speed and step_ms must be > 0")
@@ -88,6 +113,10 @@ class SerialDevice:
         self.tx_bytes = 0  # device -> host
         self.dropped_bytes = 0  # device -> host, lost because nobody read the port
         self.skipped_ms = 0.0
+        self.boot_delay_s = boot_delay_s
+        self.resets = 0  # auto-resets (port opened by the host)
+        self.boot_end_ms: float | None = None  # device time the firmware (re)starts, while booting
+        self._inotify: int | None = None
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -105,6 +134,8 @@ class SerialDevice:
         os.set_blocking(master, False)
         self._master, self._slave = master, slave
         self._port_name = os.ttyname(slave)
+        if self.boot_delay_s is not None:
+            self._inotify = _watch_opens(self._port_name)
         self._running.set()
         self._thread = threading.Thread(target=self._run, name="SerialDevice", daemon=True)
         self._thread.start()
@@ -118,11 +149,11 @@ class SerialDevice:
         if self._thread is not None:
             self._thread.join(timeout=2.0)
             self._thread = None
-        for fd in (self._master, self._slave):
+        for fd in (self._master, self._slave, self._inotify):
             if fd is not None:
                 with contextlib.suppress(OSError):
                     os.close(fd)
-        self._master = self._slave = None
+        self._master = self._slave = self._inotify = None
 
     def __enter__(self) -> SerialDevice:
         return self.start()
@@ -174,8 +205,38 @@ class SerialDevice:
             return fn(self.firmware)
 
     # ------------------------------------------------------------------ device thread
+    def _watch_host(self) -> None:
+        """Auto-reset: the host opened the port (DTR) → reset into the bootloader."""
+        try:
+            events = os.read(self._inotify, 4096)
+        except BlockingIOError:
+            return
+        opens = sum(
+            1
+            for off in range(0, len(events), _INOTIFY_EVENT.size)
+            if _INOTIFY_EVENT.unpack_from(events, off)[1] & _IN_OPEN
+        )
+        if opens:
+            self.resets += opens
+            self.boot_end_ms = self.device_ms + 1e3 * self.boot_delay_s
+            log.debug("port opened: reset, firmware starts at t=%.0f ms", self.boot_end_ms)
+
+    def _boot(self) -> bool:
+        """While in the bootloader: swallow the host's bytes; True until the firmware runs."""
+        if self.boot_end_ms is None:
+            return False
+        with contextlib.suppress(OSError):
+            while os.read(self._master, 4096):
+                pass
+        self._to_device.clear()
+        if self.device_ms < self.boot_end_ms:
+            return True
+        self.firmware = MockFirmware(self.device_ms)
+        self.boot_end_ms = None
+        log.debug("firmware started at t=%.0f ms", self.device_ms)
+        return False
+
     def _run(self) -> None:
-        fw = self.firmware
         wall0 = time.monotonic()
         dev0 = self.device_ms
         paused_at: float | None = None
@@ -195,11 +256,17 @@ class SerialDevice:
                     dev0 -= skip
                     target -= skip
                     log.debug("device thread late: skipped %.1f ms of device time", skip)
+                if self._inotify is not None:
+                    self._watch_host()
                 with self._lock:
-                    self._receive(fw)
-                    while self.device_ms + self.step_ms <= target:
-                        self._step(fw)
+                    while self._boot() and self.device_ms + self.step_ms <= target:
+                        self.device_ms += self.step_ms
+                    fw = self.firmware
+                    if self.boot_end_ms is None:
                         self._receive(fw)
+                        while self.device_ms + self.step_ms <= target:
+                            self._step(fw)
+                            self._receive(fw)
                 next_ms = self.device_ms + self.step_ms
                 wait_s = (next_ms - dev0) / (1e3 * self.speed) - (time.monotonic() - wall0)
                 if wait_s > 0:

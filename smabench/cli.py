@@ -57,8 +57,13 @@ def _positive(kind: type = float) -> Callable[[str], float]:
 
 # --------------------------------------------------------------------------- import
 def cmd_import(args: argparse.Namespace) -> int:
-    from smabench.importer import import_text
+    from smabench.importer import import_text, preview
 
+    if args.preview:
+        print(preview(args.file, args.decimal))
+        return 0
+    if not args.columns or not args.out:
+        raise CliError("import needs --columns and --out (or --preview to see the layout)")
     folder = import_text(
         args.file,
         args.columns,
@@ -66,6 +71,7 @@ def cmd_import(args: argparse.Namespace) -> int:
         wire_length_mm=args.wire_length_mm,
         load_kg=args.load_kg,
         wire_diameter_mm=args.wire_diameter_mm,
+        decimal=args.decimal,
     )
     print(f"session written: {folder}")
     return 0
@@ -152,9 +158,12 @@ def simulate_session(
     from smabench.physics.thermal import simulate_temperature
     from smabench.physics.wire import PRESETS
     from smabench.sessions import write_session
+    from smabench.settings import SettingError, check_value
 
-    if not 0 < load_kg <= 10:
-        raise CliError(f"--load-kg must be in (0, 10] kg, got {load_kg}")
+    try:
+        check_value("load_kg", load_kg)  # the run setting's range (smabench.settings)
+    except SettingError as exc:
+        raise CliError(exc.naming("--load-kg")) from None
     wire = PRESETS[wire_name]
     if not 0 < current_a <= wire.max_current_a:
         raise CliError(f"--current-a must be in (0, {wire.max_current_a}] A, got {current_a}")
@@ -337,17 +346,22 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("import", help="import a measured loop from a text file into a session")
-    s.add_argument("file", help="whitespace- or comma-separated text, header optional")
+    s.add_argument(
+        "file",
+        help="a text table: tab, semicolon, comma or white space; metadata, header and units "
+        "lines, quoted numbers and decimal commas are found",
+    )
     s.add_argument(
         "--columns",
-        required=True,
         help="column names in file order, e.g. temperature_C,strain,stress_MPa "
-        "(contract names, strain, stress_MPa, temperature_C, skip)",
+        "(contract names, strain, stress_MPa, temperature_C, voltage_V, skip)",
     )
+    s.add_argument("--preview", action="store_true", help="print the layout found and stop")
+    s.add_argument("--decimal", choices=[".", ","], help="decimal mark (default: detected)")
     s.add_argument("--wire-length-mm", type=_positive(), help="wire length, mm (strain → mm)")
     s.add_argument("--wire-diameter-mm", type=_positive(), help="wire diameter, mm (metadata)")
     s.add_argument("--load-kg", type=_positive(), help="hanging load, kg (metadata)")
-    s.add_argument("--out", required=True, help="session folder to create (must not exist)")
+    s.add_argument("--out", help="session folder to create (must not exist)")
     s.set_defaults(func=cmd_import)
 
     s = sub.add_parser("fit", help="identify a loop model on a session and report its error")
@@ -413,6 +427,9 @@ def build_parser() -> argparse.ArgumentParser:
     from smabench.analysis.cli import add_commands as add_analysis_commands
 
     add_analysis_commands(sub)
+    from smabench.firmware_cli import add_commands as add_firmware_commands
+
+    add_firmware_commands(sub)
 
     s = sub.add_parser("bench", help="benchmarks that print figures")
     bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")

@@ -1,14 +1,30 @@
-"""Import measured loops from plain text (whitespace- or comma-separated) into a session folder.
+"""Import measured loops from the text files labs and testing machines write into a session.
 
-Column names come from the session contract plus ``strain`` (dimensionless; × wire length gives
-``position_mm``), ``stress_MPa`` and ``temperature_C``; ``skip`` ignores a column.
+Real exports are not tidy tables. :func:`sniff_layout` finds, before any number is converted:
+
+- metadata lines above the table (``Test : Start of hold value,"100.00000",MPa``) and blank lines;
+- a header line of column names and a units line below it (``(s),(mm),(N)``);
+- the separator: tab, semicolon, comma or white space, whichever splits the data lines into the
+  same number of fields;
+- quoted numbers (``"0.00000"``) and decimal commas (``29,5`` with tab, semicolon or white-space
+  separators; with comma separators only ``--decimal ,`` can say so).
+
+``--preview`` prints what it found (:meth:`Layout.describe`) and the first rows, so the
+``--columns`` line can be written from it. Column names come from the session contract plus
+``strain`` (dimensionless; × wire length gives ``position_mm``), ``stress_MPa``,
+``temperature_C`` and ``skip``. A loop needs a position (``position_mm`` or ``strain``) and what
+drove it: a measured temperature (``temperature_C``), the current (``current_A``) or the voltage
+(``voltage_V``, optionally with ``current_A``: a heat balance then stands in for the temperature).
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import logging
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +34,49 @@ from smabench.sessions import COLUMNS, EXTRA_COLUMNS, TEXT_COLUMNS, write_sessio
 log = logging.getLogger(__name__)
 
 IMPORT_COLUMNS = frozenset(COLUMNS) - TEXT_COLUMNS | set(EXTRA_COLUMNS) | {"strain", "skip"}
-_SPLIT = re.compile(r"[,;\s]+")
+DRIVERS = ("temperature_C", "current_A", "voltage_V")
+"""What a loop was driven by: one of these columns is needed."""
+SEPARATORS = {"tab": "\t", "semicolon": ";", "comma": ",", "whitespace": None}
+SNIFF_ROWS = 500
+"""Rows that decide the layout; every row is still checked when the table is read."""
+_NUMBER = re.compile(r"^[+-]?(\d+([.,]\d*)?|[.,]\d+)([eE][+-]?\d+)?$")
+_DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$")
+_UNITS = re.compile(r"^\(?\s*[^\d\s()]*[^()]*\)?$")
 
 
 class TextImportError(ValueError):
     """Input text that cannot be imported (message names the line and the problem)."""
+
+
+@dataclass
+class Layout:
+    """Where the table is in a text file (1-based line numbers)."""
+
+    separator: str  # a key of SEPARATORS
+    decimal: str  # "." or ","
+    first_data_line: int
+    n_fields: int
+    header: list[str] = field(default_factory=list)
+    units: list[str] = field(default_factory=list)
+    metadata: list[str] = field(default_factory=list)
+    quoted: bool = False
+
+    def describe(self) -> str:
+        """The layout in words, one fact a line (``smabench import --preview``)."""
+        lines = [
+            f"separator: {self.separator}; decimal mark: {self.decimal!r}"
+            + ("; numbers quoted" if self.quoted else ""),
+            f"table: {self.n_fields} columns, data from line {self.first_data_line}",
+        ]
+        if self.metadata:
+            lines.append("metadata lines: " + " | ".join(self.metadata))
+        if self.header:
+            names = [
+                f"{k + 1}: {h}" + (f" {self.units[k]}" if k < len(self.units) else "")
+                for k, h in enumerate(self.header)
+            ]
+            lines.append("columns: " + "; ".join(names))
+        return "\n".join(lines)
 
 
 def parse_columns(spec: str) -> list[str]:
@@ -39,36 +93,132 @@ def parse_columns(spec: str) -> list[str]:
         raise TextImportError(f"column name(s) given twice: {', '.join(sorted(dup))}")
     if "position_mm" not in names and "strain" not in names:
         raise TextImportError("--columns needs position_mm or strain")
-    if "temperature_C" not in names and "current_A" not in names:
-        raise TextImportError("--columns needs temperature_C or current_A")
+    if not any(d in names for d in DRIVERS):
+        raise TextImportError("--columns needs temperature_C, current_A or voltage_V")
     return names
 
 
-def read_table(path: str | Path, names: Sequence[str]) -> dict[str, np.ndarray]:
-    """Read numeric rows with ``len(names)`` fields; a non-numeric first line is a header."""
+def _split(line: str, separator: str) -> list[str]:
+    sep = SEPARATORS[separator]
+    if sep is None:
+        return line.split()
+    return [f.strip() for f in next(csv.reader(io.StringIO(line), delimiter=sep))]
+
+
+def _unquote(field: str) -> str:
+    f = field.strip()
+    if len(f) >= 2 and f[0] == f[-1] and f[0] in "\"'":
+        return f[1:-1].strip()
+    return f
+
+
+def _numeric(fields: list[str]) -> bool:
+    return bool(fields) and all(_NUMBER.match(_unquote(f)) for f in fields)
+
+
+def sniff_layout(text: str, decimal: str | None = None) -> Layout:
+    """Find the table in ``text`` (TextImportError when there is none)."""
+    lines = text.splitlines()
+    best: tuple[int, str, int, int] | None = None  # (rows, separator, first line index, fields)
+    for name in SEPARATORS:
+        k = 0
+        while k < len(lines):
+            fields = _split(lines[k], name) if lines[k].strip() else []
+            if not _numeric(fields):
+                k += 1
+                continue
+            start, n_fields, rows = k, len(fields), 0
+            while k < len(lines) and rows < SNIFF_ROWS:
+                s = lines[k].strip()
+                if not s or s.startswith("#"):
+                    k += 1
+                    continue
+                f = _split(lines[k], name)
+                if len(f) != n_fields or not _numeric(f):
+                    break
+                rows += 1
+                k += 1
+            # prefer the separator giving the longest run, then more fields
+            key = (rows, n_fields)
+            if rows >= 2 and (best is None or key > (best[0], best[3])):
+                best = (rows, name, start, n_fields)
+            k += 1
+    if best is None:
+        raise TextImportError("no table of at least 2 numeric rows with a constant column count")
+    _, separator, start, n_fields = best
+    quoted = '"' in lines[start] or "'" in lines[start]
+    if decimal is None:
+        sample = [f for k in range(start, min(start + 50, len(lines)))
+                  for f in (_unquote(x) for x in _split(lines[k], separator)) if f]  # fmt: skip
+        has_comma = any(_DECIMAL_COMMA.match(f) for f in sample)
+        decimal = "," if has_comma and separator != "comma" else "."
+    elif decimal not in (".", ","):
+        raise TextImportError(f"--decimal must be '.' or ',', got {decimal!r}")
+    # above the table: units line, header line, metadata (blank lines skipped)
+    above = [(k, lines[k]) for k in range(start) if lines[k].strip()]
+    header: list[str] = []
+    units: list[str] = []
+    if above:
+        k, line = above[-1]
+        fields = [_unquote(f) for f in _split(line, separator)]
+        if len(fields) == n_fields and all(_UNITS.match(f) and ("(" in f or "[" in f or not f)
+                                           for f in fields):  # fmt: skip
+            units = fields
+            above.pop()
+    if above:
+        k, line = above[-1]
+        fields = [_unquote(f) for f in _split(line, separator)]
+        if len(fields) == n_fields and not _numeric(fields):
+            header = fields
+            above.pop()
+    metadata = [line.strip() for _, line in above if not line.strip().startswith("#")]
+    return Layout(separator, decimal, start + 1, n_fields, header, units, metadata, quoted)
+
+
+def read_text(path: str | Path) -> str:
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        raw = path.read_bytes()
     except OSError as exc:
         raise TextImportError(f"cannot read {path}: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise TextImportError(f"{path}: not a text file") from None
+    if b"\0" in raw[:4096]:
+        raise TextImportError(f"{path}: not a text file")
+    for encoding in ("utf-8-sig", "cp1252"):  # Windows exports are often cp1252
+        try:
+            return raw.decode(encoding)
+        except UnicodeDecodeError:
+            continue
+    raise TextImportError(f"{path}: not a text file")  # pragma: no cover (cp1252 takes all)
+
+
+def read_table(
+    path: str | Path, names: Sequence[str], decimal: str | None = None
+) -> tuple[dict[str, np.ndarray], Layout]:
+    """Read the table of ``path`` into named columns; returns (columns, layout)."""
+    text = read_text(path)
+    layout = sniff_layout(text, decimal)
+    if len(names) != layout.n_fields:
+        raise TextImportError(
+            f"{path}: the table has {layout.n_fields} columns"
+            + (f" ({', '.join(layout.header)})" if layout.header else "")
+            + f", --columns names {len(names)}"
+        )
     rows: list[list[float]] = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        stripped = line.strip()
+    lines = text.splitlines()
+    for lineno in range(layout.first_data_line, len(lines) + 1):
+        stripped = lines[lineno - 1].strip()
         if not stripped or stripped.startswith("#"):
             continue
-        fields = [f for f in _SPLIT.split(stripped) if f]
+        fields = [_unquote(f) for f in _split(lines[lineno - 1], layout.separator)]
+        if layout.decimal == ",":
+            fields = [f.replace(",", ".") for f in fields]
         try:
             values = [float(f) for f in fields]
         except ValueError:
-            if not rows and lineno == _first_data_line(text):
-                log.info("%s: line %d taken as a header: %s", path, lineno, stripped)
-                continue
             raise TextImportError(f"{path}: line {lineno}: not a number in {stripped!r}") from None
-        if len(values) != len(names):
+        if len(values) != layout.n_fields:
             raise TextImportError(
-                f"{path}: line {lineno} has {len(values)} columns, --columns names {len(names)}"
+                f"{path}: line {lineno} has {len(values)} columns, the table {layout.n_fields}"
             )
         if not all(np.isfinite(values)):
             raise TextImportError(f"{path}: line {lineno}: NaN or infinite value in {stripped!r}")
@@ -76,15 +226,17 @@ def read_table(path: str | Path, names: Sequence[str]) -> dict[str, np.ndarray]:
     if len(rows) < 2:
         raise TextImportError(f"{path}: fewer than 2 data rows")
     table = np.asarray(rows, dtype=float)
-    return {n: table[:, i] for i, n in enumerate(names) if n != "skip"}
+    return {n: table[:, i] for i, n in enumerate(names) if n != "skip"}, layout
 
 
-def _first_data_line(text: str) -> int:
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if s and not s.startswith("#"):
-            return lineno
-    return 0
+def preview(path: str | Path, decimal: str | None = None, rows: int = 5) -> str:
+    """The layout found in ``path`` and its first rows (``smabench import --preview``)."""
+    text = read_text(path)
+    layout = sniff_layout(text, decimal)
+    lines = text.splitlines()
+    first = [lines[k].strip() for k in range(layout.first_data_line - 1, len(lines))
+             if lines[k].strip()][:rows]  # fmt: skip
+    return layout.describe() + "\nfirst rows:\n" + "\n".join("  " + r for r in first)
 
 
 def import_text(
@@ -94,6 +246,7 @@ def import_text(
     wire_length_mm: float | None = None,
     load_kg: float | None = None,
     wire_diameter_mm: float | None = None,
+    decimal: str | None = None,
 ) -> Path:
     """Import ``path`` into a new session folder ``out``; returns the folder."""
     names = parse_columns(columns)
@@ -101,14 +254,27 @@ def import_text(
         raise TextImportError(f"--wire-length-mm must be positive, got {wire_length_mm}")
     if "strain" in names and wire_length_mm is None:
         raise TextImportError("a strain column needs --wire-length-mm to give position_mm")
-    data = read_table(path, names)
+    data, layout = read_table(path, names, decimal)
     if "strain" in data:
         data["position_mm"] = data.pop("strain") * float(wire_length_mm)
     n = len(data["position_mm"])
+    if "temperature_C" in data:
+        kind = "thermometer_loop"
+    elif "current_A" in data:
+        kind = "current_driven"
+    else:
+        kind = "voltage_driven"
     meta: dict = {
-        "kind": "thermometer_loop" if "temperature_C" in data else "current_driven",
+        "kind": kind,
         "source": str(Path(path).name),
         "imported_columns": names,
+        "source_layout": {
+            "separator": layout.separator,
+            "decimal": layout.decimal,
+            "header": layout.header,
+            "units": layout.units,
+            "metadata": layout.metadata,
+        },
         "wire": {"length_mm": wire_length_mm, "diameter_mm": wire_diameter_mm},
         "load_kg": load_kg,
         "status": "completed",

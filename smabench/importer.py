@@ -39,7 +39,8 @@ DRIVERS = ("temperature_C", "current_A", "voltage_V")
 SEPARATORS = {"tab": "\t", "semicolon": ";", "comma": ",", "whitespace": None}
 SNIFF_ROWS = 500
 """Rows that decide the layout; every row is still checked when the table is read."""
-_NUMBER = re.compile(r"^[+-]?(\d+([.,]\d*)?|[.,]\d+)([eE][+-]?\d+)?$")
+_NUMBER = re.compile(r"^[+-]?((\d+([.,]\d*)?|[.,]\d+)([eE][+-]?\d+)?|nan|inf(inity)?)$", re.I)
+"""A number as exports write them (nan/inf count, so the reader can name their line)."""
 _DECIMAL_COMMA = re.compile(r"^[+-]?\d*,\d+([eE][+-]?\d+)?$")
 _UNITS = re.compile(r"^\(?\s*[^\d\s()]*[^()]*\)?$")
 
@@ -140,11 +141,11 @@ def sniff_layout(text: str, decimal: str | None = None) -> Layout:
                 k += 1
             # prefer the separator giving the longest run, then more fields
             key = (rows, n_fields)
-            if rows >= 2 and (best is None or key > (best[0], best[3])):
+            if rows >= 1 and (best is None or key > (best[0], best[3])):
                 best = (rows, name, start, n_fields)
             k += 1
     if best is None:
-        raise TextImportError("no table of at least 2 numeric rows with a constant column count")
+        raise TextImportError("no table: no line of numbers found")
     _, separator, start, n_fields = best
     quoted = '"' in lines[start] or "'" in lines[start]
     if decimal is None:

@@ -120,6 +120,6 @@ def test_the_measured_raw_exports_import(tmp_path):
                           tmp_path / f"s{mpa}")  # fmt: skip
         s = load_session(out)
         assert len(s.data["t_s"]) > 30_000
-        assert 20.0 < np.min(s.data["temperature_C"]) and np.max(s.data["temperature_C"]) < 140.0
+        assert np.min(s.data["temperature_C"]) > 20.0 and np.max(s.data["temperature_C"]) < 140.0
         held = s.data["stress_MPa"][s.data["t_s"] > 600.0]
         assert abs(np.median(held) - mpa) < 0.05 * mpa

@@ -26,7 +26,7 @@ class CurrentSourceDevice(Protocol):
     """A connected current driver for the wire (units: A, s)."""
 
     def enable(self, on: bool) -> None:
-        """Output stage on/off (off also zeroes the setpoint)."""
+        """Output stage on/off (off: no current flows until the next enable(True))."""
 
     def set_current(self, current_a: float) -> object:
         """Command the wire current, A (0 … the device's limit)."""

@@ -40,7 +40,6 @@ from smabench.drivers.mock.firmware import (
     OPEN_WIRE_MS,
     SERIES_OHM,
 )
-
 from smabench.physics.effects import Effects
 from smabench.physics.plant import Plant, PlantState
 from smabench.physics.wire import PAPER_WIRE, Wire
@@ -255,8 +254,8 @@ class SimCurrentSource:
         return self.info
 
     def enable(self, on: bool) -> None:
-        """Output on/off (off also zeroes the setpoint); on is refused while a fault is
-        latched (:class:`SimDeviceFaultError`)."""
+        """Output on/off; on is refused while a fault is latched
+        (:class:`SimDeviceFaultError`)."""
         with self.plant.lock:
             self._command()
             if on:
@@ -264,9 +263,8 @@ class SimCurrentSource:
                     raise SimDeviceFaultError(f"ENABLE refused: {p.fault_text(self.flags)}")
                 self.flags &= ~p.Flag.HOST_TIMEOUT
                 self.enabled = True
-            else:
+            else:  # as the firmware: output off, the setpoint kept
                 self.enabled = False
-                self.setpoint_a = 0.0
                 self.current_a = 0.0
 
     def set_current(self, current_a: float) -> p.Status:

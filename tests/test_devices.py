@@ -1,0 +1,212 @@
+"""One device test suite (python-microscope's testsuite pattern): the contract of the device seams
+(:mod:`smabench.drivers.base`) checked on every implementation.
+
+Implementations (the ``rig`` fixture):
+
+- ``sim``: the in-process simulated devices (:mod:`smabench.drivers.sim`) on a simulated clock;
+- ``mock``: the real clients (:class:`~smabench.drivers.current_source.CurrentSource` over a pty,
+  :class:`~smabench.drivers.displacement.DisplacementSensor` over Modbus TCP) against the mock
+  bench (the Python firmware model) served from threads in this process;
+- ``emulated``: the same clients against the real AVR firmware in simavr (skipped when the
+  firmware is not built, except under CI).
+
+Contract: ``make_safe`` is idempotent, never raises (also before connect and after close) and
+the output is off afterwards — checked on the device side, the current the plant receives;
+``set_current`` is reflected in the telemetry and on the device side; ``enable(False)`` turns
+the output off; out-of-range setpoints are refused; sensor samples carry a finite position or
+invalid flags, and an injected sensor failure comes back as a flagged sample, never an
+exception. Waits poll a condition against a generous deadline (simulated time for ``sim``), so
+the suite holds on a busy machine.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import pytest
+
+from smabench.drivers import protocol as p
+from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
+from smabench.drivers.displacement import FLAG_EXCEPTION, FLAGS_INVALID
+
+IMPLEMENTATIONS = ("sim", "mock", "emulated")
+SETPOINT_A = 0.8
+TOLERANCE_A = 0.04  # 5 %: the firmware settles within 5 % in 50 ms (PROTOCOL.md)
+
+
+@dataclass
+class Rig:
+    """One implementation's devices plus the test's view of the device side."""
+
+    name: str
+    source: CurrentSourceDevice
+    sensor: DisplacementDevice
+    wire_current_a: Callable[[], float]  # the current the plant receives now, A
+    fail_next_read: Callable[[], None]  # the next sensor reading fails
+    unconnected_source: Callable[[], CurrentSourceDevice]
+    wait_s: float  # deadline for a condition (simulated s for sim, wall s otherwise)
+    poll: Callable[[], None]  # let time pass a little
+
+    def wait(self, condition: Callable[[], bool]) -> bool:
+        """Poll ``condition`` until it holds or the deadline passes; returns whether it held."""
+        deadline = self.elapsed() + self.wait_s
+        while not condition():
+            if self.elapsed() > deadline:
+                return condition()
+            self.poll()
+        return True
+
+    elapsed: Callable[[], float] = time.monotonic
+
+
+def _sim_rig() -> Iterator[Rig]:
+    from smabench.drivers.sim import SimBench, SimCurrentSource, SimPlant
+    from smabench.physics.plant import Plant
+
+    bench = SimBench(2.0)
+    clock = bench.clock
+
+    def unconnected():
+        return SimCurrentSource(SimPlant(Plant(2.0), clock))
+
+    # 0.2 s of simulated time: inside the device's 0.25 s host timeout (no keepalive here)
+    yield Rig(
+        "sim", bench.source, bench.sensor, lambda: bench.state.current_a,
+        lambda: bench.sensor.fail(1), unconnected, 0.2, lambda: clock.sleep(0.005),
+        clock.now,
+    )  # fmt: skip
+
+
+def _mock_rig(firmware: str) -> Iterator[Rig]:
+    from smabench.drivers.current_source import CurrentSource
+    from smabench.drivers.displacement import DisplacementSensor
+    from smabench.drivers.mock.bench import SENSOR_MAP, SIM_BIN, SIM_ELF, MockBench
+
+    if firmware == "emulated" and not (SIM_BIN.is_file() and SIM_ELF.is_file()):
+        if os.environ.get("CI"):
+            pytest.fail("firmware build missing under CI (`make -C firmware elf sim`)")
+        pytest.skip("firmware build missing (`make -C firmware elf sim`)")
+    bench = MockBench(2.0, firmware=firmware, rtu=False)
+    ports = bench.start()
+    source = CurrentSource(ports.driver)
+    sensor = DisplacementSensor(SENSOR_MAP, ports.sensor_tcp, timeout_s=0.5, retries=0)
+    try:
+        source.connect()
+        source.clear_faults()
+        sensor.connect()
+        yield Rig(
+            firmware, source, sensor, lambda: bench.link.state.current_a,
+            lambda: bench.server.fail_with_exception(4, 1),
+            lambda: CurrentSource(ports.driver), 3.0, lambda: time.sleep(0.005),
+        )  # fmt: skip
+    finally:
+        source.close()
+        sensor.close()
+        bench.stop()
+
+
+@pytest.fixture(params=IMPLEMENTATIONS)
+def rig(request) -> Iterator[Rig]:
+    if request.param == "sim":
+        yield from _sim_rig()
+    else:
+        yield from _mock_rig("python" if request.param == "mock" else "emulated")
+
+
+def _heat(rig: Rig, current_a: float = SETPOINT_A) -> None:
+    rig.source.enable(True)
+    rig.source.set_current(current_a)
+    assert rig.wait(lambda: abs(rig.wire_current_a() - current_a) < TOLERANCE_A), (
+        f"{rig.name}: the wire never got {current_a} A (it gets {rig.wire_current_a():.3f} A)"
+    )
+
+
+# ----------------------------------------------------------------------------- the contract
+def test_devices_implement_the_protocols(rig):
+    assert isinstance(rig.source, CurrentSourceDevice)
+    assert isinstance(rig.sensor, DisplacementDevice)
+
+
+def test_make_safe_turns_the_output_off_on_the_device_side_and_is_idempotent(rig):
+    _heat(rig)
+    first = rig.source.make_safe()
+    second = rig.source.make_safe()  # idempotent: a second call is harmless
+    assert isinstance(first, bool) and isinstance(second, bool)
+    assert rig.wait(lambda: rig.wire_current_a() == 0.0), (
+        f"{rig.name}: the wire still gets {rig.wire_current_a():.3f} A after make_safe"
+    )
+    rig.sensor.make_safe()  # the sensor's never raises either
+    # the device stays off: no later telemetry reports the output enabled
+    assert rig.wait(
+        lambda: (t := rig.source.latest()) is not None and not t.flags & p.Flag.ENABLED
+    )
+
+
+def test_make_safe_never_raises_before_connect_or_after_close(rig):
+    fresh = rig.unconnected_source()
+    assert fresh.make_safe() in (True, False)  # nothing to talk to: no exception either
+    fresh.close()
+    assert rig.source.make_safe() in (True, False)
+    rig.source.close()
+    assert rig.source.make_safe() in (True, False)
+    rig.source.make_safe()
+    rig.sensor.close()
+    rig.sensor.make_safe()
+
+
+def test_set_current_is_reflected_in_the_telemetry_and_on_the_device_side(rig):
+    _heat(rig)
+
+    def reported() -> bool:
+        t = rig.source.latest()
+        return (
+            t is not None
+            and t.setpoint_a == pytest.approx(SETPOINT_A, abs=1e-3)
+            and abs(t.current_a - SETPOINT_A) < TOLERANCE_A
+            and bool(t.flags & p.Flag.ENABLED)
+        )
+
+    assert rig.wait(reported), f"{rig.name}: telemetry {rig.source.latest()}"
+    age = rig.source.telemetry_age_s()
+    assert age is not None and 0.0 <= age < rig.wait_s
+    assert rig.source.fault_text() == ""
+    t = rig.source.latest()
+    # the wire voltage is the current through the plant's resistance (0.3 … 1 Ω)
+    assert 0.3 * SETPOINT_A < t.voltage_v < 1.0 * SETPOINT_A
+    rig.source.enable(False)  # output off: reported, and on the device side
+    assert rig.wait(
+        lambda: not (t := rig.source.latest()).flags & p.Flag.ENABLED and t.current_a == 0.0
+    )
+    assert rig.wire_current_a() == 0.0
+
+
+def test_out_of_range_setpoints_are_refused(rig):
+    rig.source.enable(True)
+    for bad in (-0.1, 2.6, math.inf):
+        with pytest.raises(ValueError):
+            rig.source.set_current(bad)
+    rig.source.make_safe()
+
+
+def test_sensor_samples_carry_finite_positions_or_invalid_flags(rig):
+    samples = []
+    for _ in range(20):
+        samples.append(rig.sensor.read_or_flag())
+        rig.poll()
+    for s in samples:
+        if math.isfinite(s.position_mm):
+            assert not s.flags & FLAGS_INVALID, s
+            assert 0.0 < s.position_mm < 10.0, s  # the slider of a 55 mm wire, mm
+        else:
+            assert s.flags & FLAGS_INVALID, s
+    assert sum(math.isfinite(s.position_mm) for s in samples) >= 10  # mostly real readings
+    rig.fail_next_read()
+    failed = rig.sensor.read_or_flag()  # never raises: a flagged sample
+    assert math.isnan(failed.position_mm) and failed.flags & FLAGS_INVALID, failed
+    if rig.name != "sim":
+        assert failed.flags & FLAG_EXCEPTION
+    assert rig.wait(lambda: math.isfinite(rig.sensor.read_or_flag().position_mm))

@@ -25,87 +25,60 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from typing import Any
 
 from smabench.commands import CommandStep
+from smabench.settings import (
+    OPEN_LOOP_NAMES,
+    PROTOCOL_NAMES,
+    REFERENCE_NAMES,
+    check_protocol,
+    default,
+)
 
 log = logging.getLogger(__name__)
 
-PROTOCOL_NAMES = ("cycles", "incomplete", "inner", "step", "ramp", "staircase", "sine", "triangle")
-REFERENCE_NAMES = ("step", "staircase", "sine", "triangle")
-"""Protocols that are position references for a controller (``step`` is both)."""
-OPEN_LOOP_NAMES = ("cycles", "incomplete", "inner", "step", "ramp")
+__all__ = ["OPEN_LOOP_NAMES", "PROTOCOL_NAMES", "REFERENCE_NAMES", "Protocol", "ProtocolSettings"]
+
+_P = "protocol."
 
 
 @dataclass
 class ProtocolSettings:
-    """Parameters of every protocol; each protocol reads the ones it needs (units in names)."""
+    """Parameters of every protocol; each protocol reads the ones it needs (units in names).
+    Defaults, ranges and help: :mod:`smabench.settings` (keys ``protocol.<field>``)."""
 
-    name: str = "cycles"
-    cycles: int = 5
-    current_a: float = 1.0
-    heat_s: float = 3.0
-    cool_timeout_s: float = 15.0
-    min_cool_s: float = 3.0
-    settle_mm: float = 0.005
-    settle_window_s: float = 1.0
-    partial_cool_s: float = 2.0
-    inner_heat_s: float = 0.4
-    inner_cool_s: float = 0.8
-    levels_a: tuple[float, ...] = (0.4, 0.8, 1.2, 0.8, 0.4, 0.0)
-    hold_s: float = 4.0
-    ramp_s: float = 5.0
+    name: str = default(_P + "name")
+    cycles: int = default(_P + "cycles")
+    current_a: float = default(_P + "current_a")
+    heat_s: float = default(_P + "heat_s")
+    cool_timeout_s: float = default(_P + "cool_timeout_s")
+    min_cool_s: float = default(_P + "min_cool_s")
+    settle_mm: float = default(_P + "settle_mm")
+    settle_window_s: float = default(_P + "settle_window_s")
+    partial_cool_s: float = default(_P + "partial_cool_s")
+    inner_heat_s: float = default(_P + "inner_heat_s")
+    inner_cool_s: float = default(_P + "inner_cool_s")
+    levels_a: tuple[float, ...] = default(_P + "levels_a")
+    hold_s: float = default(_P + "hold_s")
+    ramp_s: float = default(_P + "ramp_s")
     # position references (closed loop)
-    amplitude_mm: float = 0.8
-    offset_mm: float | None = None  # None: the middle of the reachable stroke
-    period_s: float = 20.0
-    lead_in_s: float = 8.0
-    max_rise_mm_s: float | None = None  # natural-cooling limit told to the reference generator
+    amplitude_mm: float = default(_P + "amplitude_mm")
+    offset_mm: float | None = default(_P + "offset_mm")  # None: the middle of the stroke
+    period_s: float = default(_P + "period_s")
+    lead_in_s: float = default(_P + "lead_in_s")
+    max_rise_mm_s: float | None = default(_P + "max_rise_mm_s")  # natural-cooling limit
 
     def validate(self, max_current_a: float, closed_loop: bool = False) -> None:
-        """Raise ValueError naming the setting that is out of range. ``closed_loop``: the
-        protocol feeds a controller (a position reference) rather than the current directly."""
-        if self.name not in PROTOCOL_NAMES:
-            raise ValueError(
-                f"unknown protocol {self.name!r}; choose from {', '.join(PROTOCOL_NAMES)}"
-            )
-        if closed_loop and self.name not in REFERENCE_NAMES:
-            raise ValueError(
-                f"protocol {self.name!r} is open loop; with a controller choose a reference: "
-                f"{', '.join(REFERENCE_NAMES)}"
-            )
-        if not closed_loop and self.name not in OPEN_LOOP_NAMES:
-            raise ValueError(
-                f"protocol {self.name!r} is a position reference: it needs a controller "
-                "(--controller pid|ff|ffpid)"
-            )
-        if closed_loop:
-            if not (math.isfinite(self.amplitude_mm) and 0.0 <= self.amplitude_mm <= 50.0):
-                raise ValueError(f"amplitude must be in 0 … 50 mm, got {self.amplitude_mm}")
-            if not 0.5 <= self.period_s <= 3600.0:
-                raise ValueError(f"period must be in 0.5 … 3600 s, got {self.period_s}")
-            if not 0.0 <= self.lead_in_s <= 600.0:
-                raise ValueError(f"lead-in must be in 0 … 600 s, got {self.lead_in_s}")
-            if self.max_rise_mm_s is not None and not self.max_rise_mm_s > 0:
-                raise ValueError(f"max_rise_mm_s must be > 0, got {self.max_rise_mm_s}")
-        if not 1 <= self.cycles <= 10_000:
-            raise ValueError(f"cycles must be in 1 … 10000, got {self.cycles}")
-        currents = (self.current_a, *self.levels_a) if self.name == "step" else (self.current_a,)
-        for c in currents:
-            if not 0.0 <= c <= max_current_a:
-                raise ValueError(f"current {c} A is outside 0 … {max_current_a} A (driver limit)")
-        for name in (
-            "heat_s",
-            "cool_timeout_s",
-            "partial_cool_s",
-            "inner_heat_s",
-            "inner_cool_s",
-            "hold_s",
-            "ramp_s",
-            "settle_window_s",
-        ):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        """Raise ValueError (:class:`smabench.settings.SettingError`) naming the setting that is
+        out of range. ``closed_loop``: the protocol feeds a controller (a position reference)
+        rather than the current directly; ``max_current_a`` bounds its currents."""
+        check_protocol(asdict(self), max_current_a, closed_loop)
+
+    def values(self) -> dict[str, Any]:
+        """The settings as schema values (keys ``protocol.<field>``)."""
+        return {_P + k: v for k, v in asdict(self).items()}
 
 
 class _Settle:

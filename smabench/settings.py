@@ -81,13 +81,19 @@ class SettingError(ValueError):
 
     def __init__(self, key: str, value: Any, reason: str) -> None:
         self.key, self.value, self.reason = key, value, reason
-        super().__init__(f"{reason} ({key})")
+        super().__init__(self.naming(key))
+
+    def naming(self, name: str) -> str:
+        """The message naming the setting as ``name`` (``{name}`` in the reason, else at the
+        end in parentheses)."""
+        if "{name}" in self.reason:
+            return self.reason.replace("{name}", name)
+        return f"{self.reason} ({name})"
 
     def for_cli(self) -> str:
         """The message naming the command-line option instead of the key."""
         s = SETTINGS.get(self.key)
-        opt = s.cli_names()[0] if s is not None and s.cli_names() else self.key
-        return f"{self.reason} ({opt})"
+        return self.naming(s.cli_names()[0] if s is not None and s.cli_names() else self.key)
 
 
 def _g(x: float) -> str:
@@ -604,11 +610,11 @@ def values_from_mapping(cfg: Mapping[str, Any], complete: bool = True) -> dict[s
                 elif key in SETTINGS:
                     flat[key] = sv
                 else:
-                    raise SettingError(key, sv, f"unknown setting {key!r}")
+                    raise SettingError(key, sv, "unknown setting {name}")
         elif name in SETTINGS and name.split(".")[0] not in _GROUPED:
             flat[name] = v
         else:
-            raise SettingError(name, v, f"unknown setting {name!r}")
+            raise SettingError(name, v, "unknown setting {name}")
     values = {k: check_value(k, v) for k, v in flat.items()}
     if complete:
         with_controller = cfg.get("controller") is not None
@@ -700,15 +706,19 @@ def _gain_set_of(s: Setting) -> GainSet | None:
 
 def _cli_kwargs(s: Setting) -> dict[str, Any]:
     text = s.help.rstrip(".")
-    bits = [b for b in (s.range_text if s.kind != "choice" else "", f"default {s.default_text}")
-            if b]  # fmt: skip
+    bits = [b for b in (s.range_text if s.kind != "choice" else "",
+                        "" if s.required else f"default {s.default_text}") if b]  # fmt: skip
     uses = s.protocols + tuple(p for p in s.references if p not in s.protocols)
     if s.group == "protocol" and uses:
         bits.append("for " + ", ".join(uses))
     if s.kind == "choice":
         text += f" {{{', '.join(s.choices)}}}"
     help_text = f"{text} [{'; '.join(bits)}]".replace("%", "%%")
+    if s.required:
+        help_text = "required: " + help_text
     if s.kind == "bool":
+        if not s.cli_flag_value:
+            help_text = f"switch off the {s.label}: " + help_text[0].lower() + help_text[1:]
         return {"action": "store_const", "const": s.cli_flag_value, "help": help_text}
     kw: dict[str, Any] = {"help": help_text, "metavar": s.metavar or _metavar(s)}
     if s.kind == "floats":
@@ -729,8 +739,13 @@ def _metavar(s: Setting) -> str:
 
 def values_from_args(args: argparse.Namespace) -> dict[str, Any]:
     """The options given on the command line (not the defaults), parsed and checked, keyed by
-    setting key; a bad value raises SettingError (use ``for_cli()`` for the message)."""
+    setting key; a bad value or a required option missing raises SettingError (use
+    :func:`cli_error` for the message)."""
     given: dict[str, Any] = {}
+    for s in _TABLE:
+        if s.required and s.cli_names() and getattr(args, s.dest, None) is None:
+            raise SettingError(s.key, None, f"{s.label} must be given: {{name}} "
+                               f"{s.metavar or _metavar(s)}")  # fmt: skip
     for s in _TABLE:
         v = getattr(args, s.dest, None)
         if v is not None:
@@ -748,7 +763,7 @@ def cli_error(exc: SettingError) -> str:
     s = SETTINGS.get(exc.key)
     gs = _gain_set_of(s) if s is not None else None
     if gs is not None and gs.cli_triple and exc.key.rsplit(".", 1)[1] != "d_filter_s":
-        return f"{exc.reason} ({gs.cli_triple})"
+        return exc.naming(gs.cli_triple)
     return exc.for_cli()
 
 
@@ -800,20 +815,25 @@ def check_stress(values: Mapping[str, Any]) -> StressCheck:
     if sc.needs_confirmation and not values.get("allow_high_stress"):
         raise SettingError(
             "allow_high_stress", False,
-            f"load {_g(sc.load_kg)} kg puts {sc.stress_mpa:.0f} MPa on the wire, above its "
+            f"load {_g(sc.load_kg)} kg puts {sc.stress_mpa:.0f} MPa on the "
+            f"{PRESETS[values.get('wire_preset') or default('wire_preset')].diameter_mm:.2f} mm "
+            "wire, above its "
             f"long-life stress of {sc.limit_mpa:.0f} MPa (about {sc.limit_load_kg:.2f} kg); "
-            "allow it explicitly to run",
+            "to run it anyway, give {name}",
         )
     return sc
 
 
-def effective_current_limit_a(values: Mapping[str, Any],
-                              device_limit_a: float | None = None) -> float:  # fmt: skip
-    """The current the protocol may ask for, A: the current limit, the wire's rated current and
-    the driver's limit, whichever is lowest."""
-    limit = min(values.get("current_limit_a", default("current_limit_a")),
-                wire_of(values).max_current_a)  # fmt: skip
-    return limit if device_limit_a is None else min(limit, device_limit_a)
+def effective_current_limit_a(
+    values: Mapping[str, Any], device_limit_a: float | None = None
+) -> tuple[float, str]:
+    """The current the protocol may ask for, A, and what sets it: the current limit, the wire's
+    rated current or the driver's limit, whichever is lowest."""
+    options = [(values.get("current_limit_a", default("current_limit_a")), "the current limit"),
+               (wire_of(values).max_current_a, "the wire's rated current")]  # fmt: skip
+    if device_limit_a is not None:
+        options.append((device_limit_a, "the driver's limit"))
+    return min(options, key=lambda o: o[0])
 
 
 def check_current_limit(current_limit_a: float, wire: Wire) -> None:
@@ -827,8 +847,8 @@ def check_current_limit(current_limit_a: float, wire: Wire) -> None:
                            f"{_g(current_limit_a)} A")  # fmt: skip
 
 
-def check_protocol(proto: Mapping[str, Any], max_current_a: float,
-                   closed_loop: bool = False) -> None:  # fmt: skip
+def check_protocol(proto: Mapping[str, Any], max_current_a: float, closed_loop: bool = False,
+                   limit_name: str = "the current limit") -> None:  # fmt: skip
     """A protocol's settings (names without ``protocol.``): ranges, the protocol against the
     loop (a controller needs a reference), and its currents against ``max_current_a``."""
     check_values(proto, "protocol.")
@@ -850,7 +870,7 @@ def check_protocol(proto: Mapping[str, Any], max_current_a: float,
             if c > max_current_a:
                 s = SETTINGS[f"protocol.{k}"]
                 raise SettingError(s.key, c, f"{s.label} {_g(c)} A is outside 0 … "
-                                   f"{_g(max_current_a)} A (the current limit)")  # fmt: skip
+                                   f"{_g(max_current_a)} A, {limit_name}")  # fmt: skip
 
 
 def check_run(values: Mapping[str, Any], device_limit_a: float | None = None) -> StressCheck:
@@ -870,5 +890,6 @@ def check_run(values: Mapping[str, Any], device_limit_a: float | None = None) ->
                            f"position min {_g(lo)} mm")  # fmt: skip
     proto = {k.split(".", 1)[1]: v for k, v in values.items() if k.startswith("protocol.")}
     closed = values.get("controller.mode") is not None
-    check_protocol(proto, effective_current_limit_a(values, device_limit_a), closed)
+    limit_a, limit_name = effective_current_limit_a(values, device_limit_a)
+    check_protocol(proto, limit_a, closed_loop=closed, limit_name=limit_name)
     return check_stress(values)

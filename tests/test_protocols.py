@@ -89,13 +89,26 @@ def test_step_and_ramp():
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"name": "zigzag"}, "unknown protocol"),
-        ({"current_a": 3.0}, "driver limit"),
-        ({"current_a": -0.1}, "driver limit"),
-        ({"cycles": 0}, "cycles"),
-        ({"heat_s": 0}, "heat_s"),
+        ({"name": "zigzag"}, "unknown protocol 'zigzag'; choose from cycles, incomplete"),
+        ({"current_a": 3.0}, r"current must be in 0 … 2.5 A, got 3 A \(protocol.current_a\)"),
+        ({"current_a": -0.1}, r"current must be in 0 … 2.5 A, got -0.1 A"),
+        ({"current_a": 2.1}, "current 2.1 A is outside 0 … 2 A, the current limit"),
+        ({"name": "step", "levels_a": (0.5, 2.2)}, r"current levels 2.2 A is outside 0 … 2 A"),
+        ({"cycles": 0}, r"cycles must be in 1 … 10000, got 0 \(protocol.cycles\)"),
+        ({"cycles": 2.5}, "cycles must be a whole number"),
+        ({"heat_s": 0}, r"heat time must be in \(0, 600\] s, got 0 s \(protocol.heat_s\)"),
+        ({"settle_window_s": math.inf}, "settle window must be in"),
     ],
 )
 def test_validation(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ProtocolSettings(**kwargs).validate(max_current_a=2.0)
+
+
+def test_only_the_protocols_own_currents_are_bounded_by_the_limit():
+    # a ramp at 1.5 A under a 1 A limit is refused; the same current on a step protocol (which
+    # runs its levels) is not the step's business
+    with pytest.raises(ValueError, match="outside 0 … 1 A"):
+        ProtocolSettings(name="ramp", current_a=1.5).validate(max_current_a=1.0)
+    ProtocolSettings(name="step", current_a=1.5, levels_a=(0.5, 1.0)).validate(max_current_a=1.0)
+    ProtocolSettings(name="sine", current_a=2.4).validate(max_current_a=1.0, closed_loop=True)

@@ -20,9 +20,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from smabench import settings as settings_schema
 from smabench.bench.session_run import RunSettings, run_session
-from smabench.physics.wire import PRESETS
-from smabench.protocols import PROTOCOL_NAMES, Protocol, ProtocolSettings
+from smabench.protocols import Protocol
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         tcp_port=args.tcp_port,
         seed=args.seed,
         trace=args.trace,
+        bootloader=args.bootloader,
+        blank=args.blank,
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -198,58 +200,24 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
 
 # --------------------------------------------------------------------------- smabench run
 def settings_from_args(args: argparse.Namespace) -> RunSettings:
-    """RunSettings from the command line; ValueError when out of range (nothing opened yet)."""
-    proto = ProtocolSettings(
-        name=args.protocol,
-        cycles=args.cycles,
-        current_a=args.current_a,
-        heat_s=args.heat_s,
-        cool_timeout_s=args.cool_timeout_s,
-        partial_cool_s=args.partial_cool_s,
-        inner_heat_s=args.inner_heat_s,
-        inner_cool_s=args.inner_cool_s,
-        amplitude_mm=args.amplitude_mm,
-        offset_mm=args.offset_mm,
-        period_s=args.period_s,
-        lead_in_s=args.lead_in_s,
-    )
-    controller = None
-    if args.controller is not None or args.switch_at:
-        from smabench.control import ControllerSettings, PIDGains, gains_for_load, parse_switch
-
-        gains = None
-        if any(v is not None for v in (args.kp, args.ki, args.kd)):
-            if None in (args.kp, args.ki):
-                raise ValueError("give at least --kp and --ki (and optionally --kd)")
-            gains = PIDGains(args.kp, args.ki, args.kd or 0.0)
-        # FF+PID's PIDs: mm/mm, 1/s, s, with the tables' derivative filter
-        tf = gains_for_load(args.load_kg, law="ffpid").d_filter_s
-        ffpid = PIDGains(*args.ffpid_gains, tf) if args.ffpid_gains else None
-        hold = PIDGains(*args.ffpid_hold_gains, tf) if args.ffpid_hold_gains else None
-        controller = ControllerSettings(
-            mode=args.controller or "pid",
-            gains=gains,
-            ffpid_gains=ffpid,
-            ffpid_hold_gains=hold,
-            model=args.ff_model,
-            adapt=not args.no_adapt,
-            switches=[parse_switch(x) for x in args.switch_at],
-            cooling_limit=args.cooling_limit,
-        )
-    settings = RunSettings(
-        load_kg=args.load_kg,
-        protocol=proto,
-        rate_hz=args.rate_hz,
-        wire_preset=args.wire,
-        current_limit_a=args.current_limit_a,
-        temperature_limit_c=args.temperature_limit_c,
-        max_duration_s=args.max_duration_s,
-        out_dir=Path(args.out),
-        session_id=args.session_id,
-        time_scale=args.mock_speed if args.mock else 1.0,
-        controller=controller,
-    )
-    settings.validate()
+    """RunSettings from the command line (options derived from :mod:`smabench.settings`);
+    ValueError naming the option, its value and range when refused (nothing opened yet)."""
+    try:
+        given = settings_schema.values_from_args(args)
+        if given.get("controller.switches") and given.get("controller.mode") is None:
+            given["controller.mode"] = "pid"  # a switch needs a controller to switch
+        settings = RunSettings.from_values(given)
+    except settings_schema.SettingError as exc:
+        raise ValueError(settings_schema.cli_error(exc)) from None
+    if args.mock:
+        try:
+            settings.time_scale = settings_schema.check_value("time_scale", args.mock_speed)
+        except settings_schema.SettingError as exc:
+            raise ValueError(exc.naming("--mock-speed")) from None
+    try:
+        settings.validate()
+    except settings_schema.SettingError as exc:
+        raise ValueError(settings_schema.cli_error(exc)) from None
     return settings
 
 
@@ -329,7 +297,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     try:
         if args.mock:
             mock_args = [
-                *("--load-kg", str(args.load_kg), "--speed", str(args.mock_speed)),
+                *("--load-kg", f"{settings.load_kg:g}", "--speed", str(args.mock_speed)),
                 *("--firmware", args.mock_firmware, "--seed", str(args.mock_seed)),
             ]
             for e in args.mock_effect:
@@ -407,6 +375,14 @@ def add_commands(sub) -> None:
         "--control-stdin", action="store_true", help="read fault-injection commands on stdin"
     )
     add_mock_arguments(s)
+    s.add_argument(
+        "--bootloader",
+        action="store_true",
+        help="emulated firmware: boot optiboot first; every open of the port resets it, as a Nano",
+    )
+    s.add_argument(
+        "--blank", action="store_true", help="with --bootloader: no application (flash it first)"
+    )
     s.set_defaults(func=cmd_mock)
 
     s = sub.add_parser("run", help="run a recorded session (headless) on the bench or the mock")
@@ -425,65 +401,7 @@ def add_commands(sub) -> None:
         "--mock-sensor", choices=["tcp", "rtu"], default="tcp", help="mock sensor transport"
     )
     add_mock_arguments(where, prefix="mock-")
-    s.add_argument("--load-kg", type=float, required=True, help="hanging load, kg (recorded)")
-    s.add_argument("--protocol", default="cycles", help=f"one of {', '.join(PROTOCOL_NAMES)}")
-    s.add_argument("--cycles", type=int, default=5, help="number of cycles (5)")
-    s.add_argument("--current-a", type=float, default=1.0, help="heating current, A (1.0)")
-    s.add_argument("--heat-s", type=float, default=3.0, help="heating time per cycle, s (3)")
-    s.add_argument("--cool-timeout-s", type=float, default=15.0, help="max cooling time, s (15)")
-    s.add_argument("--partial-cool-s", type=float, default=2.0, help="incomplete: cooling, s")
-    s.add_argument("--inner-heat-s", type=float, default=0.4, help="inner: pulse heating, s")
-    s.add_argument("--inner-cool-s", type=float, default=0.8, help="inner: pulse cooling, s")
-    ctl = s.add_argument_group("closed loop (position references: step, staircase, sine, triangle)")
-    ctl.add_argument(
-        "--controller",
-        choices=["open_loop", "pid", "ff", "ffpid"],
-        help="control law on the position reference given by --protocol",
-    )
-    ctl.add_argument(
-        "--switch-at",
-        action="append",
-        default=[],
-        metavar="S:MODE",
-        help="switch the law at S s of device time, e.g. 30:ff (repeatable)",
-    )
-    ctl.add_argument("--amplitude-mm", type=float, default=0.8, help="reference amplitude, mm")
-    ctl.add_argument(
-        "--offset-mm", type=float, help="reference offset, mm (default: middle of the stroke)"
-    )
-    ctl.add_argument("--period-s", type=float, default=20.0, help="reference period, s (20)")
-    ctl.add_argument(
-        "--lead-in-s", type=float, default=8.0, help="hold before the first period, s (8)"
-    )
-    ctl.add_argument("--kp", type=float, help="PID gain, W/mm (default: per-load table)")
-    ctl.add_argument("--ki", type=float, help="PID gain, W/(mm·s)")
-    ctl.add_argument("--kd", type=float, help="PID gain, W·s/mm")
-    ctl.add_argument(
-        "--ffpid-gains", type=float, nargs=3, metavar=("KP", "KI", "KD"),
-        help="FF+PID's gains while the setpoint moves: mm/mm, 1/s, s (default: per-load table)",
-    )  # fmt: skip
-    ctl.add_argument(
-        "--ffpid-hold-gains", type=float, nargs=3, metavar=("KP", "KI", "KD"),
-        help="FF+PID's gains while the setpoint holds still (default: per-load table, 0 0.02 0)",
-    )  # fmt: skip
-    ctl.add_argument(
-        "--ff-model", choices=["sigmoid", "1", "2"], default="sigmoid", help="feed-forward model"
-    )
-    ctl.add_argument("--no-adapt", action="store_true", help="no online model adaptation")
-    ctl.add_argument(
-        "--cooling-limit",
-        action="store_true",
-        help="limit the reference's rise to the wire's natural cooling rate",
-    )
-    s.add_argument("--rate-hz", type=float, default=200.0, help="loop rate, Hz (200)")
-    s.add_argument("--wire", default="paper", choices=sorted(PRESETS), help="wire preset")
-    s.add_argument("--current-limit-a", type=float, default=2.0, help="interlock, A (2.0)")
-    s.add_argument(
-        "--temperature-limit-c", type=float, default=160.0, help="interlock on the estimate, °C"
-    )
-    s.add_argument("--max-duration-s", type=float, default=3600.0, help="abort after, s")
-    s.add_argument("--out", default="sessions", help="parent folder of the session (sessions/)")
-    s.add_argument("--session-id", help="session folder name (default: time, protocol, load)")
+    settings_schema.add_cli_options(s)  # every run setting, from the one schema
     s.add_argument("--quiet", action="store_true", help="no progress lines")
     s.set_defaults(func=cmd_run)
 

@@ -19,8 +19,8 @@ Out (stdout), one line each:
   process on Linux), or ``confirmed: false``;
 - ``E <json>``: a session ended (status, reason, samples, folder);
 - ``Q <json>``: the process is closing.
-In (stdin): ``start <settings json>`` (the fields of :class:`RunSettings`, ``protocol`` as the
-fields of :class:`ProtocolSettings`), ``estop``, ``stop``, ``pause``, ``resume``, ``mode NAME``,
+In (stdin): ``start <settings json>`` (the settings of :mod:`smabench.settings` in its JSON
+shape, see ``values_from_mapping``), ``estop``, ``stop``, ``pause``, ``resume``, ``mode NAME``,
 ``gains KP KI KD [LAW]`` (LAW: ``pid``, ``ffpid`` or ``ffpid_hold``), ``open_current A`` (the
 current held when switched to open loop), ``quit``. ``estop`` is obeyed on the reading thread at
 once, whatever another command is doing. EOF on stdin (the GUI died) e-stops and closes everything.
@@ -38,14 +38,14 @@ import queue
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.drivers.protocol import Flag
-from smabench.protocols import Protocol, ProtocolSettings
+from smabench.protocols import Protocol
 from smabench.sessions import format_row
+from smabench.settings import values_from_mapping
 
 log = logging.getLogger(__name__)
 
@@ -89,25 +89,9 @@ class PausableCommand:
 
 
 def settings_from_json(cfg: dict[str, Any]) -> RunSettings:
-    s = dict(cfg)
-    proto = dict(s.pop("protocol", {}))
-    if "levels_a" in proto:
-        proto["levels_a"] = tuple(proto["levels_a"])
-    for key in ("position_min_mm", "position_max_mm"):
-        if key in s and s[key] is None:
-            s[key] = -math.inf if key.endswith("min_mm") else math.inf
-    if "out_dir" in s:
-        s["out_dir"] = Path(s["out_dir"])
-    ctl = s.pop("controller", None)
-    if ctl is not None:  # closed loop on a position reference
-        from smabench.control import ControllerSettings, PIDGains
-
-        ctl = dict(ctl)
-        for key in ("gains", "ffpid_gains", "ffpid_hold_gains"):  # [kp, ki, kd(, d_filter_s)]
-            if ctl.get(key) is not None:
-                ctl[key] = PIDGains(*ctl[key])
-        s["controller"] = ControllerSettings(**ctl)
-    settings = RunSettings(protocol=ProtocolSettings(**proto), **s)
+    """The ``start`` message's settings, checked against :mod:`smabench.settings` (the same
+    schema as the command line's options); ValueError naming the setting, value and range."""
+    settings = RunSettings.from_values(values_from_mapping(cfg))
     settings.validate()
     return settings
 

@@ -20,50 +20,98 @@ from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
 from smabench.physics.wire import PRESETS
 from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import SCHEMA_VERSION, SessionWriter
+from smabench.settings import (
+    SETTINGS,
+    SettingError,
+    StressCheck,
+    check_run,
+    default,
+    stress_check,
+    to_mapping,
+)
 
 log = logging.getLogger(__name__)
 
 __all__ = ["SCHEMA_VERSION", "RunSettings", "run_session", "session_meta"]
-MAX_LOAD_KG = 10.0
+
+_TOP_LEVEL = (
+    "load_kg", "rate_hz", "wire_preset", "current_limit_a", "temperature_limit_c",
+    "position_min_mm", "position_max_mm", "max_duration_s", "out_dir", "session_id",
+    "time_scale", "max_load_kg", "long_life_stress_mpa", "allow_high_stress",
+)  # fmt: skip
+"""RunSettings' own fields, each a setting of :mod:`smabench.settings` under the same key."""
 
 
 @dataclass
 class RunSettings:
-    """What the operator chose for one session (units in names)."""
+    """What the operator chose for one session (units in names). Defaults, ranges, units and
+    help: :mod:`smabench.settings`; position limits of ±inf mean none (``None`` there)."""
 
     load_kg: float
     protocol: ProtocolSettings = field(default_factory=ProtocolSettings)
-    rate_hz: float = 200.0
-    wire_preset: str = "paper"
-    current_limit_a: float = 2.0
-    temperature_limit_c: float = 160.0
+    rate_hz: float = default("rate_hz")
+    wire_preset: str = default("wire_preset")
+    current_limit_a: float = default("current_limit_a")
+    temperature_limit_c: float = default("temperature_limit_c")
     position_min_mm: float = -math.inf
     position_max_mm: float = math.inf
-    max_duration_s: float = 3600.0
-    out_dir: Path = Path("sessions")
-    session_id: str | None = None
-    time_scale: float = 1.0  # > 1 only against a mock bench run faster than real time
+    max_duration_s: float = default("max_duration_s")
+    out_dir: Path = Path(default("out_dir"))
+    session_id: str | None = default("session_id")
+    time_scale: float = default("time_scale")  # > 1 only against a mock run faster than real
     controller: Any = None  # smabench.control.ControllerSettings: closed loop on a reference
+    max_load_kg: float = default("max_load_kg")
+    long_life_stress_mpa: float | None = default("long_life_stress_mpa")  # None: the wire's
+    allow_high_stress: bool = default("allow_high_stress")
 
-    def validate(self, device_limit_a: float | None = None) -> None:
-        """Raise ValueError naming the first setting that is out of range."""
-        if not (isinstance(self.load_kg, (int, float)) and 0.0 < self.load_kg <= MAX_LOAD_KG):
-            raise ValueError(f"load must be in (0, {MAX_LOAD_KG}] kg, got {self.load_kg}")
-        if self.wire_preset not in PRESETS:
-            raise ValueError(
-                f"unknown wire preset {self.wire_preset!r}; choose from {', '.join(PRESETS)}"
-            )
-        wire = PRESETS[self.wire_preset]
-        limit = min(self.current_limit_a, wire.max_current_a)
-        if device_limit_a is not None:
-            limit = min(limit, device_limit_a)
-        if not 0.0 < self.current_limit_a <= wire.max_current_a * 1.25:
-            raise ValueError(f"current limit {self.current_limit_a} A is out of range")
-        self.protocol.validate(limit, closed_loop=self.controller is not None)
-        self.runtime_config().validate()
+    def values(self) -> dict[str, Any]:
+        """Every setting as schema values (flat keys; the controller's only with one)."""
+        out: dict[str, Any] = {k: getattr(self, k) for k in _TOP_LEVEL}
+        out["out_dir"] = str(self.out_dir)
+        for k in ("position_min_mm", "position_max_mm"):
+            if not math.isfinite(out[k]):
+                out[k] = None
+        out.update(self.protocol.values())
+        if self.controller is not None:
+            out.update(self.controller.values())
+        return out
+
+    @classmethod
+    def from_values(cls, values: dict[str, Any]) -> RunSettings:
+        """From schema values (the CLI's or the runtime's JSON, see :mod:`smabench.settings`);
+        missing ones take their defaults. Not validated: call :meth:`validate`."""
+        v = {**{k: s.default for k, s in SETTINGS.items() if "." not in k}, **values}
+        kw = {k: v[k] for k in _TOP_LEVEL if k in v}
+        kw["out_dir"] = Path(kw["out_dir"])
+        kw["position_min_mm"] = -math.inf if kw["position_min_mm"] is None else \
+            kw["position_min_mm"]  # fmt: skip
+        kw["position_max_mm"] = math.inf if kw["position_max_mm"] is None else \
+            kw["position_max_mm"]  # fmt: skip
+        proto = {k.split(".", 1)[1]: x for k, x in values.items() if k.startswith("protocol.")}
+        controller = None
+        if values.get("controller.mode") is not None:
+            from smabench.control.factory import ControllerSettings
+
+            controller = ControllerSettings.from_values(values, kw["load_kg"])
+        return cls(protocol=ProtocolSettings(**proto), controller=controller, **kw)
+
+    def validate(self, device_limit_a: float | None = None) -> StressCheck:
+        """Raise ValueError (:class:`smabench.settings.SettingError`) naming the first setting
+        that is out of range or refused with the others (load above the max load or, without
+        ``allow_high_stress``, above the wire's long-life stress; currents above the current
+        limit, the wire's or ``device_limit_a``); returns the stress check."""
+        if self.load_kg is None:
+            raise SettingError("load_kg", None, "load must be given")
         if self.controller is not None:
             self.controller.validate()
+        stress = check_run(self.values(), device_limit_a)
+        self.runtime_config().validate()
+        if self.controller is not None:
             self.build_controller()  # refuses unreachable setpoints before any device opens
+        return stress
+
+    def stress(self) -> StressCheck:
+        return stress_check(self.load_kg, self.wire_preset, self.long_life_stress_mpa)
 
     def build_controller(self):
         """The session's controller (identifies the loop model; ValueError when refused)."""
@@ -104,6 +152,8 @@ def session_meta(
     wire = PRESETS[settings.wire_preset]
     proto = asdict(settings.protocol)
     proto["levels_a"] = list(proto["levels_a"])
+    stress = settings.stress()
+    values = settings.values()
     return {
         "schema_version": SCHEMA_VERSION,
         "kind": "bench",
@@ -121,9 +171,16 @@ def session_meta(
         "limits": {
             "current_limit_a": settings.current_limit_a,
             "temperature_limit_c": settings.temperature_limit_c,
-            "position_min_mm": settings.position_min_mm,
-            "position_max_mm": settings.position_max_mm,
+            "position_min_mm": values["position_min_mm"],  # null: no limit
+            "position_max_mm": values["position_max_mm"],
+            "max_load_kg": settings.max_load_kg,
+            "max_duration_s": settings.max_duration_s,
+            "stress_MPa": round(stress.stress_mpa, 1),
+            "long_life_stress_MPa": stress.limit_mpa,
+            "above_long_life_stress": stress.needs_confirmation,
+            "allow_high_stress": settings.allow_high_stress,
         },
+        "settings": to_mapping(values),  # every setting as the runtime's JSON takes it
     }
 
 

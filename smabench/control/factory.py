@@ -11,10 +11,10 @@ together.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
+from typing import Any
 
-from smabench.control.controller import MODES, Controller
+from smabench.control.controller import Controller
 from smabench.control.feedforward import FeedForward
 from smabench.control.model import InverseLoop, identify_kinetic_lag, identify_loop_model
 from smabench.control.observer import ObserverSettings, TemperatureObserver
@@ -22,51 +22,98 @@ from smabench.control.pid import PID, PIDGains, gains_for_load
 from smabench.control.reference import Reference, natural_rise_rate_mm_s
 from smabench.physics.wire import Wire
 from smabench.protocols import ProtocolSettings
+from smabench.settings import GAIN_COMPONENTS, GAIN_SETS, check_value, default
 
 log = logging.getLogger(__name__)
 
 MODEL_CACHE: dict[tuple, object] = {}
 
 
+_C = "controller."
+
+
 @dataclass
 class ControllerSettings:
-    """Closed-loop options of a session (units in names)."""
+    """Closed-loop options of a session (units in names). Defaults, ranges and help:
+    :mod:`smabench.settings` (keys ``controller.<field>``; a gain set ``None`` is the per-load
+    table). ``mode`` defaults to FF+PID here; a session without a controller has none at all."""
 
     mode: str = "ffpid"
     gains: PIDGains | None = None  # PID law, W/mm …; None: the per-load table
     ffpid_gains: PIDGains | None = None  # FF+PID's PID, mm/mm …; None: the per-load table
-    ffpid_limit_mm: float = 1.0  # largest setpoint shift of FF+PID's PID
+    ffpid_limit_mm: float = default(_C + "ffpid_limit_mm")  # largest shift of FF+PID's PID
     ffpid_hold_gains: PIDGains | None = None  # FF+PID on setpoint holds; None: the table
-    model: str = "sigmoid"  # loop model of the feed-forward: sigmoid, 1, 2
-    adapt: bool = True
-    lead_s: float | None = None  # None: each branch's identified kinetic lag
-    horizon_s: float = 0.05  # heat-balance inverse horizon (see feedforward)
-    preview_slack_s: float = 0.5
-    reversal_deadband_mm: float = 0.02  # setpoint move back that counts as a reversal
+    model: str = default(_C + "model")  # loop model of the feed-forward: sigmoid, 1, 2
+    adapt: bool = default(_C + "adapt")
+    lead_s: float | None = default(_C + "lead_s")  # None: each branch's identified lag
+    horizon_s: float = default(_C + "horizon_s")  # heat-balance inverse horizon
+    preview_slack_s: float = default(_C + "preview_slack_s")
+    reversal_deadband_mm: float = default(_C + "reversal_deadband_mm")
     observer: ObserverSettings | None = field(default_factory=ObserverSettings)  # None: off
-    t_ceiling_c: float = 120.0
+    t_ceiling_c: float = default(_C + "t_ceiling_c")
     switches: list[tuple[float, str]] = field(default_factory=list)
-    cooling_limit: bool = False  # tell the reference the natural cooling rate (max_rise_mm_s)
+    cooling_limit: bool = default(_C + "cooling_limit")  # tell the reference the cooling rate
 
     def validate(self) -> None:
-        if self.mode not in MODES:
-            raise ValueError(f"unknown controller {self.mode!r}; choose from {', '.join(MODES)}")
-        for g in (self.gains, self.ffpid_gains, self.ffpid_hold_gains):
+        """ValueError (:class:`smabench.settings.SettingError`) naming the first setting out of
+        range."""
+        for name, v in self.values().items():
+            if GAIN_SET_KEYS.get(name.rsplit(".", 1)[0]) is None:
+                check_value(name, v)
+        for law, g in self.gain_sets().items():
             if g is not None:
-                g.validate()
-        if self.model not in ("sigmoid", "1", "2"):
-            raise ValueError(f"feed-forward model must be sigmoid, 1 or 2, got {self.model!r}")
-        if self.lead_s is not None and not 0.0 <= self.lead_s <= 5.0:
-            raise ValueError(f"feed-forward lead must be in 0 … 5 s, got {self.lead_s}")
-        if not 0.0 < self.horizon_s <= 1.0:
-            raise ValueError(f"feed-forward horizon must be in (0, 1] s, got {self.horizon_s}")
-        if not 0.0 < self.ffpid_limit_mm <= 5.0:
-            raise ValueError(f"FF+PID shift limit must be in (0, 5] mm, got {self.ffpid_limit_mm}")
-        if not 40.0 <= self.t_ceiling_c <= 200.0:
-            raise ValueError(f"temperature ceiling must be in 40 … 200 °C, got {self.t_ceiling_c}")
-        for t, m in self.switches:
-            if m not in MODES or not (math.isfinite(t) and t >= 0):
-                raise ValueError(f"bad switch {t}:{m}")
+                g.validate(law)
+
+    def gain_sets(self) -> dict[str, PIDGains | None]:
+        return {"pid": self.gains, "ffpid": self.ffpid_gains, "ffpid_hold": self.ffpid_hold_gains}
+
+    def values(self) -> dict[str, Any]:
+        """The settings as schema values (keys ``controller.…``; gain components ``None`` when
+        a set comes from the per-load table)."""
+        out: dict[str, Any] = {
+            _C + "mode": self.mode,
+            _C + "switches": tuple(tuple(x) for x in self.switches),
+            _C + "observer": self.observer is not None,
+        }
+        for name in ("model", "adapt", "lead_s", "horizon_s", "preview_slack_s",
+                     "reversal_deadband_mm", "ffpid_limit_mm", "t_ceiling_c", "cooling_limit"):
+            out[_C + name] = getattr(self, name)  # fmt: skip
+        for law, g in self.gain_sets().items():
+            for key, comp in zip(GAIN_SETS[law].keys, GAIN_COMPONENTS, strict=True):
+                out[key] = None if g is None else getattr(g, comp)
+        return out
+
+    @classmethod
+    def from_values(cls, values: dict[str, Any], load_kg: float) -> ControllerSettings:
+        """From schema values (:func:`smabench.settings.values_from_mapping` or the CLI); a gain
+        component left ``None`` comes from the per-load table for ``load_kg``."""
+        v = {k[len(_C):]: x for k, x in values.items() if k.startswith(_C)}
+        observer = v.pop("observer", True)
+        kw = {k: x for k, x in v.items() if "." not in k}
+        sets = {law: gains_from_values(values, law, load_kg) for law in GAIN_SETS}
+        kw["switches"] = [tuple(x) for x in kw.get("switches", ())]
+        kw.setdefault("mode", "ffpid")
+        if kw["mode"] is None:
+            kw["mode"] = "ffpid"
+        return cls(gains=sets["pid"], ffpid_gains=sets["ffpid"],
+                   ffpid_hold_gains=sets["ffpid_hold"],
+                   observer=ObserverSettings() if observer else None, **kw)  # fmt: skip
+
+
+GAIN_SET_KEYS = {gs.key: law for law, gs in GAIN_SETS.items()}
+
+
+def gains_from_values(values: dict[str, Any], law: str, load_kg: float) -> PIDGains | None:
+    """``law``'s gains from schema values: None when no component is given (the per-load table
+    then applies at build time), else the given components with the rest from the table."""
+    keys = GAIN_SETS[law].keys
+    given = [values.get(k) for k in keys]
+    if all(x is None for x in given):
+        return None
+    table = gains_for_load(load_kg, law=law)
+    comps = [x if x is not None else getattr(table, c)
+             for x, c in zip(given, GAIN_COMPONENTS, strict=True)]  # fmt: skip
+    return PIDGains(*comps)
 
 
 def loop_model_for(load_kg: float, wire: Wire, model: str, ambient_c: float = 22.0):

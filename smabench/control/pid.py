@@ -32,6 +32,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from smabench.commands import CommandStep
+from smabench.settings import GAIN_SETS, check_value
 
 log = logging.getLogger(__name__)
 
@@ -46,13 +47,13 @@ class PIDGains:
     kd: float = 0.0
     d_filter_s: float = 0.3
 
-    def validate(self) -> None:
-        for name in ("kp", "ki", "kd"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and 0.0 <= v <= 100.0):
-                raise ValueError(f"PID gain {name} must be in 0 … 100, got {v}")
-        if not 0.0 < self.d_filter_s <= 10.0:
-            raise ValueError(f"derivative filter must be in (0, 10] s, got {self.d_filter_s}")
+    def validate(self, law: str = "pid") -> None:
+        """ValueError naming the gain, its value and range (:mod:`smabench.settings`; the
+        ranges of ``law``'s gain set: ``pid``, ``ffpid`` or ``ffpid_hold``)."""
+        gain_set = GAIN_SETS[law]
+        for key, v in zip(gain_set.keys, (self.kp, self.ki, self.kd, self.d_filter_s),
+                          strict=True):  # fmt: skip
+            check_value(key, v)
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)

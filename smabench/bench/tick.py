@@ -48,6 +48,7 @@ from smabench.sessions import (
     FLAGS_POSITION_INVALID,
     SENSOR_FLAGS_MASK,
 )
+from smabench.settings import check_current_limit, check_value
 
 log = logging.getLogger(__name__)
 
@@ -85,12 +86,11 @@ class RuntimeConfig:
     max_jump_mm: float = 1.0  # broken wire: position jump between two valid samples, mm
 
     def validate(self) -> None:
-        if not 1.0 <= self.rate_hz <= 2000.0:
-            raise ValueError(f"loop rate must be in 1 … 2000 Hz, got {self.rate_hz}")
-        if not 0.0 < self.current_limit_a <= self.wire.max_current_a * 1.25:
-            raise ValueError(f"current limit {self.current_limit_a} A is out of range")
-        if not 0.1 <= self.time_scale <= 100.0:
-            raise ValueError(f"time scale must be in 0.1 … 100, got {self.time_scale}")
+        # the operator's settings: ranges from the one schema (smabench.settings)
+        check_value("rate_hz", self.rate_hz)
+        check_current_limit(self.current_limit_a, self.wire)
+        check_value("time_scale", self.time_scale)
+        check_value("temperature_limit_c", self.temperature_limit_c)
         if not 0.05 <= self.sensor_timeout_s <= 5.0:
             raise ValueError(f"sensor timeout must be in 0.05 … 5 s, got {self.sensor_timeout_s}")
         if not 0.05 <= self.link_timeout_s <= 0.45:

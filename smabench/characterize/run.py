@@ -1,0 +1,278 @@
+"""Characterize sessions: read each (streamed chunk by chunk), run E3097, fit the phase diagram.
+
+One session is one task (:func:`characterize_session`, a plain function of picklable
+arguments): :func:`run_tasks` runs the tasks on local worker processes by default or on a Dask
+cluster when given a scheduler address; the results are the same either way (each task is
+deterministic and the results are put back in the order of the sessions).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from smabench.characterize.e3097 import (
+    TEMPERATURE_KEYS,
+    BranchResult,
+    CharacterizeError,
+    CycleStream,
+)
+from smabench.sessions import (
+    FLAGS_POSITION_INVALID,
+    SessionError,
+    iter_sample_chunks,
+    load_session_meta_check,
+    read_header,
+    sample_files,
+)
+
+log = logging.getLogger(__name__)
+
+DEFAULT_WIRE_LENGTH_MM = 55.0  # the bench's wire (DESIGN §1); stated on stderr when used
+DEFAULT_WIRE_DIAMETER_MM = 0.38
+
+
+@dataclass(frozen=True)
+class Overrides:
+    """What the command line may set when a session does not say it (units in names)."""
+
+    wire_length_mm: float | None = None
+    wire_diameter_mm: float | None = None
+    load_mpa: float | None = None
+
+
+def stress_mpa(load_kg: float, diameter_mm: float) -> float:
+    from smabench.physics.wire import Wire
+    from smabench.physics.wire import stress_mpa as wire_stress
+
+    return float(wire_stress(load_kg, Wire().with_diameter_mm(diameter_mm)))
+
+
+def characterize_session(
+    path: str,
+    overrides: Overrides = Overrides(),  # noqa: B008 - frozen, immutable
+    keep_cycles: Sequence[int] | str = (),
+) -> dict[str, Any]:
+    """E3097 on one session (folder or CSV). Returns the JSON entry of this session plus, under
+    ``"_branches"``, the tangent construction of the cycles in ``keep_cycles`` (for plots).
+
+    Raises :class:`CharacterizeError` / :class:`SessionError` (ValueError) on bad input.
+    """
+    p = Path(path)
+    meta = load_session_meta_check(p)
+    first = sample_files(p)[0] if p.is_dir() else p
+    header = read_header(first)
+    want = [c for c in ("t_s", "temperature_C", "temperature_est_C", "position_mm", "flags",
+                        "stress_MPa") if c in header]  # fmt: skip
+    warnings: list[str] = []
+    wire = meta.get("wire") or {}
+    length_mm = overrides.wire_length_mm or wire.get("length_mm")
+    if not length_mm:
+        length_mm = DEFAULT_WIRE_LENGTH_MM
+        warnings.append(f"no wire length in the session: {length_mm:g} mm assumed "
+                        "(give --wire-length-mm)")  # fmt: skip
+    stream = CycleStream(keep_cycles if keep_cycles == "auto" else set(keep_cycles))
+    source: str | None = None
+    stress: list[float] = []
+    files = sample_files(p) if p.is_dir() else [p]
+    for k, data in enumerate(iter_sample_chunks(p, want)):
+        if source is None:
+            for col, name in (("temperature_C", "measured"), ("temperature_est_C", "estimated")):
+                if col in data and np.isfinite(data[col]).sum() >= 3:
+                    source = name
+                    break
+            if source is None:
+                raise CharacterizeError(f"{path}: no temperature_C or temperature_est_C values")
+        t_c = data["temperature_C" if source == "measured" else "temperature_est_C"]
+        position = data["position_mm"].copy()
+        if "flags" in data:
+            flags = np.nan_to_num(data["flags"]).astype(np.int64)
+            position[(flags & FLAGS_POSITION_INVALID) != 0] = np.nan
+        if "stress_MPa" in data and np.isfinite(data["stress_MPa"]).any():
+            stress.append(float(np.nanmedian(data["stress_MPa"])))
+        t_s = data["t_s"] if "t_s" in data else np.arange(len(t_c), dtype=float)
+        try:
+            stream.feed(t_c, position / float(length_mm), t_s, final=k == len(files) - 1)
+        except CharacterizeError as exc:
+            raise CharacterizeError(f"{path}: {exc}") from None
+    try:
+        cycles, kept = stream.result()
+    except CharacterizeError as exc:
+        raise CharacterizeError(f"{path}: {exc}") from None
+    load_mpa = overrides.load_mpa
+    load_from = "command line"
+    if load_mpa is None and stress:
+        load_mpa, load_from = float(np.median(stress)), "stress_MPa column"
+    if load_mpa is None and meta.get("load_kg") is not None:
+        d = overrides.wire_diameter_mm or wire.get("diameter_mm")
+        if not d:
+            d = DEFAULT_WIRE_DIAMETER_MM
+            warnings.append(f"no wire diameter in the session: {d:g} mm assumed")
+        load_mpa, load_from = stress_mpa(float(meta["load_kg"]), float(d)), "load_kg and diameter"
+    if load_mpa is None:
+        warnings.append("no load in the session (give --load-mpa): not in the phase diagram")
+    for c in cycles:
+        c["temperature_source"] = source
+    out: dict[str, Any] = {
+        "session": str(path),
+        "load_MPa": load_mpa,
+        "load_source": load_from if load_mpa is not None else None,
+        "temperature_source": source,
+        "wire_length_mm": float(length_mm),
+        "n_cycles": len(cycles),
+        "warnings": warnings,
+        "cycles": cycles,
+    }
+    if keep_cycles:
+        out["_branches"] = {k: v for k, v in kept.items()}
+    return out
+
+
+# --------------------------------------------------------------------------- phase diagram
+def phase_diagram(sessions: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
+    """Clausius–Clapeyron slopes dσ/dT (MPa/K) of As, Af, Ms, Mf across loads.
+
+    A straight line T = c + k·σ through every cycle's temperature at its session's stress
+    (the stress is the set variable); slope = 1/k. Uncertainty (1 σ): the least-squares standard
+    error from the scatter when there are more points than two; with exactly two (one cycle per
+    load) the per-cycle temperature uncertainty (RMS residual of the tangent lines) propagated.
+    None when fewer than two distinct loads.
+    """
+    loads = {round(s["load_MPa"], 6) for s in sessions if s.get("load_MPa") is not None}
+    if len(loads) < 2:
+        return None
+    out: dict[str, Any] = {}
+    for key in TEMPERATURE_KEYS:
+        sig, temp, unc = [], [], []
+        for s in sessions:
+            if s.get("load_MPa") is None:
+                continue
+            for c in s["cycles"]:
+                v = c.get(f"{key}_C")
+                if v is not None:
+                    sig.append(s["load_MPa"])
+                    temp.append(v)
+                    u = c.get("temperature_uncertainty_K")
+                    unc.append(u if u is not None and u > 0 else math.nan)
+        sig_a, temp_a, unc_a = np.array(sig), np.array(temp), np.array(unc)
+        if len(set(np.round(sig_a, 6))) < 2:
+            out[key] = {"slope_MPa_per_K": None, "uncertainty": None, "n_points": len(sig)}
+            continue
+        A = np.column_stack([np.ones_like(sig_a), sig_a])
+        coef, *_ = np.linalg.lstsq(A, temp_a, rcond=None)
+        k = float(coef[1])
+        n = len(sig_a)
+        cov = None
+        if n > 2:
+            resid = temp_a - A @ coef
+            s2 = float(resid @ resid) / (n - 2)
+            cov = s2 * np.linalg.inv(A.T @ A)
+        if np.isfinite(unc_a).all():
+            w = np.diag(1.0 / unc_a**2)
+            cov_w = np.linalg.inv(A.T @ w @ A)
+            cov = cov_w if cov is None else np.maximum(cov, cov_w)
+        dk = math.sqrt(cov[1, 1]) if cov is not None else math.nan
+        slope = 1.0 / k if k != 0 else math.nan
+        out[key] = {
+            "slope_MPa_per_K": slope if math.isfinite(slope) else None,
+            "uncertainty": (dk / k**2) if k != 0 and math.isfinite(dk) else None,
+            "T_at_0MPa_C": float(coef[0]),
+            "n_points": n,
+        }
+    return out
+
+
+# --------------------------------------------------------------------------- running tasks
+def _local_workers(n_tasks: int, workers: int | None) -> int:
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, min(n_tasks, workers or cpus or 1))
+
+
+def run_tasks(
+    func: Callable[..., Any],
+    args: Sequence[tuple],
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> list[Any]:
+    """``[func(*a) for a in args]``, one task per item: on a Dask cluster when ``scheduler``
+    (``tcp://host:port``) is given, else on local worker processes (in this process when there
+    is one task or ``workers == 1``). Results come back in the order of ``args``; a task's
+    exception is raised here (the first in order)."""
+    if scheduler:
+        try:
+            from distributed import Client
+        except ImportError as exc:  # pragma: no cover - a declared dependency
+            raise CharacterizeError(
+                f"--scheduler needs dask[distributed] ({exc}); pip install 'dask[distributed]'"
+            ) from None
+        try:
+            client = Client(scheduler, timeout="10s", set_as_default=False)
+        except OSError as exc:
+            raise CharacterizeError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
+        with client:
+            futures = [client.submit(func, *a, pure=False) for a in args]
+            return client.gather(futures)
+    n = _local_workers(len(args), workers)
+    if n == 1:
+        return [func(*a) for a in args]
+    with ProcessPoolExecutor(max_workers=n) as pool:
+        futures = [pool.submit(func, *a) for a in args]
+        return [f.result() for f in futures]
+
+
+def characterize_many(
+    paths: Sequence[str],
+    overrides: Overrides = Overrides(),  # noqa: B008
+    keep_cycles: Sequence[int] | str = (),
+    scheduler: str | None = None,
+    workers: int | None = None,
+) -> dict[str, Any]:
+    """The ``smabench characterize`` JSON document for several sessions (plus ``_branches``
+    inside each session entry when ``keep_cycles``; strip before writing)."""
+    for p in paths:  # every path checked before any work is sent out
+        load_session_meta_check(p)
+    results = run_tasks(
+        characterize_session,
+        [(str(p), overrides, keep_cycles if isinstance(keep_cycles, str) else tuple(keep_cycles))
+         for p in paths],  # fmt: skip
+        scheduler=scheduler,
+        workers=workers,
+    )
+    return {
+        "format": "smabench-characterize/1",
+        "standard": "ASTM E3097 (tangent-line intersections; see smabench.characterize.e3097)",
+        "sessions": results,
+        "phase_diagram": phase_diagram(results),
+    }
+
+
+def strip_private(doc: dict[str, Any]) -> dict[str, Any]:
+    """The document without plot-only entries (keys starting with '_')."""
+    return {
+        **doc,
+        "sessions": [
+            {k: v for k, v in s.items() if not k.startswith("_")} for s in doc["sessions"]
+        ],
+    }
+
+
+def branches_of(doc: dict[str, Any]) -> dict[str, dict[int, tuple[BranchResult, BranchResult]]]:
+    return {s["session"]: s.get("_branches", {}) for s in doc["sessions"]}
+
+
+__all__ = [
+    "Overrides",
+    "SessionError",
+    "characterize_many",
+    "characterize_session",
+    "phase_diagram",
+    "run_tasks",
+]

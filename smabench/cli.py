@@ -427,6 +427,9 @@ def build_parser() -> argparse.ArgumentParser:
     from smabench.analysis.cli import add_commands as add_analysis_commands
 
     add_analysis_commands(sub)
+    from smabench.characterize.cli import add_commands as add_characterize_commands
+
+    add_characterize_commands(sub)
     from smabench.firmware_cli import add_commands as add_firmware_commands
 
     add_firmware_commands(sub)
@@ -461,6 +464,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_control(bsub)
     add_bench_analyze(bsub)
+    from smabench.characterize.cli import add_bench_characterize
+
+    add_bench_characterize(bsub)
 
     add_bench_gui(bsub, _positive())
     return p

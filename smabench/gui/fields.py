@@ -1,126 +1,44 @@
-"""Input fields that never change a value by accident and never alter what was typed.
+"""Input fields built from the settings schema (:mod:`smabench.settings`) that never change a
+value by accident and never alter what was typed.
 
-- :class:`NumberField`: a line edit for a number with a range and unit. Text outside the range
-  (or not a number) is kept as typed, marked red, and :meth:`NumberField.error` says the allowed
-  range; nothing is clamped or rounded ("-5" kg stays "-5" and is refused). The mouse wheel does
-  nothing to it. Optional fields may be left empty (``None``: "automatic" / "no limit").
-- :class:`NoWheelCombo`: a drop-down whose choice the wheel changes only when it has the focus
-  (otherwise the wheel scrolls the panel as the operator meant).
+- :class:`ValueField`: a line edit for a number, a list of numbers or text. The schema's
+  ``Setting.check`` parses and checks it; text it refuses is kept as typed, marked red, and
+  :meth:`ValueField.error` gives the schema's sentence with the allowed range (nothing is clamped
+  or rounded: "-5" kg stays "-5" and Start refuses it). The mouse wheel does nothing to it.
+  Optional settings may be left empty (``None``: the schema's ``none_text``).
+- :class:`ChoiceField`: a drop-down for a choice; :class:`BoolField`: a check box.
+- :class:`NoWheelCombo`: a drop-down whose choice the wheel changes only while it has the focus
+  (otherwise the wheel scrolls the panel, as the operator meant).
+
+Every field has ``setting``, ``value()``, ``set_value(v)``, ``error()`` and a ``changed`` signal.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, field
+from typing import Any
 
 from PySide6 import QtCore, QtGui, QtWidgets
+
+from smabench.settings import Setting, SettingError
 
 Qt = QtCore.Qt
 INVALID_STYLE = "QLineEdit { background: #ffd7d7; border: 1px solid #c62828; }"
 
 
-@dataclass(frozen=True)
-class FieldSpec:
-    """One setting as the GUI shows it (from the settings schema)."""
-
-    name: str
-    label: str
-    default: float | int | None
-    lo: float | None = None  # inclusive unless lo_open
-    hi: float | None = None
-    unit: str = ""
-    help: str = ""
-    integer: bool = False
-    optional: bool = False  # empty allowed: None
-    empty_text: str = ""  # what empty means ("middle of the stroke", "no limit")
-    lo_open: bool = False
-    live: bool = False  # may change while a session runs
-    protocols: tuple[str, ...] = field(default_factory=tuple)  # empty: every protocol
-    group: str = ""
-
-
-def _fmt(v: float | None) -> str:
+def _show(setting: Setting, v: Any) -> str:
     if v is None:
         return ""
-    return f"{v:g}" if abs(v) < 1e6 else f"{v:.6g}"
+    if setting.kind == "floats":
+        return ", ".join(f"{x:g}" for x in v)
+    if setting.kind == "int":
+        return str(int(v))
+    if isinstance(v, float):
+        return f"{v:g}"
+    return str(v)
 
 
-class NumberField(QtWidgets.QLineEdit):
-    """A number in a range; see the module docstring."""
-
-    changed = QtCore.Signal()
-
-    def __init__(self, spec: FieldSpec, parent: QtWidgets.QWidget | None = None) -> None:
-        super().__init__(parent)
-        self.spec = spec
-        self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
-        self.setPlaceholderText(spec.empty_text)
-        tip = f"{spec.label}: {self.range_text()}"
-        if spec.help:
-            tip += f"\n{spec.help}"
-        self.base_tip = tip
-        self.setToolTip(tip)
-        self.set_value(spec.default)
-        self.textChanged.connect(self._check)
-
-    def range_text(self) -> str:
-        s = self.spec
-        unit = f" {s.unit}" if s.unit else ""
-        if s.lo is not None and s.hi is not None:
-            left = "above" if s.lo_open else "from"
-            text = f"{left} {_fmt(s.lo)} to {_fmt(s.hi)}{unit}"
-        elif s.lo is not None:
-            text = f"{'above' if s.lo_open else 'at least'} {_fmt(s.lo)}{unit}"
-        elif s.hi is not None:
-            text = f"at most {_fmt(s.hi)}{unit}"
-        else:
-            text = "any number" + unit
-        if s.integer:
-            text += ", whole numbers"
-        if s.optional:
-            text += f"; empty: {s.empty_text or 'automatic'}"
-        return text
-
-    def set_value(self, value: float | int | None) -> None:
-        self.setText("" if value is None else (str(int(value)) if self.spec.integer
-                                               else _fmt(float(value))))  # fmt: skip
-
-    def error(self) -> str:
-        """'' when the text is a valid value, else the sentence the operator reads."""
-        s = self.spec
-        text = self.text().strip()
-        if not text:
-            return "" if s.optional else f"{s.label}: enter a value ({self.range_text()})"
-        try:
-            v = float(text)
-        except ValueError:
-            return f"{s.label}: “{self.text()}” is not a number ({self.range_text()})"
-        bad = not math.isfinite(v)
-        bad |= s.integer and v != int(v)
-        bad |= s.lo is not None and (v <= s.lo if s.lo_open else v < s.lo)
-        bad |= s.hi is not None and v > s.hi
-        if bad:
-            return f"{s.label}: {text} is outside the allowed range ({self.range_text()})"
-        return ""
-
-    def value(self) -> float | int | None:
-        """The value; ValueError (with :meth:`error`'s sentence) when the text is not valid."""
-        err = self.error()
-        if err:
-            raise ValueError(err)
-        text = self.text().strip()
-        if not text:
-            return None
-        return int(float(text)) if self.spec.integer else float(text)
-
-    def _check(self) -> None:
-        err = self.error()
-        self.setStyleSheet(INVALID_STYLE if err else "")
-        self.setToolTip(err if err else self.base_tip)
-        self.changed.emit()
-
-    def wheelEvent(self, event: QtGui.QWheelEvent) -> None:  # noqa: N802 (Qt name)
-        event.ignore()  # never a value change: the panel scrolls instead
+def label_for(setting: Setting) -> str:
+    return f"{setting.label} ({setting.unit})" if setting.unit else setting.label
 
 
 class NoWheelCombo(QtWidgets.QComboBox):
@@ -135,3 +53,112 @@ class NoWheelCombo(QtWidgets.QComboBox):
             super().wheelEvent(event)
         else:
             event.ignore()
+
+
+class ValueField(QtWidgets.QLineEdit):
+    """A number, numbers or text checked by the schema; see the module docstring."""
+
+    changed = QtCore.Signal()
+
+    def __init__(self, setting: Setting, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.setting = setting
+        self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
+        self.setPlaceholderText(setting.none_text if setting.optional else "")
+        self.base_tip = setting.tooltip
+        self.setToolTip(self.base_tip)
+        self.set_value(setting.default)
+        self.textChanged.connect(self._check)
+
+    def set_value(self, value: Any) -> None:
+        self.setText(_show(self.setting, value))
+
+    def error(self) -> str:
+        """'' when the text is valid, else the sentence the operator reads (with the range)."""
+        s = self.setting
+        text = self.text().strip()
+        if not text and not s.optional:
+            return f"{s.label}: enter a value ({s.range_text})"
+        if s.kind in ("float", "int") and text and "," in text:
+            return f"{s.label}: “{text}” is not a number (use a point: 1.5)"
+        try:
+            s.check(text if text else None)
+        except SettingError as exc:
+            return str(exc)
+        return ""
+
+    def value(self) -> Any:
+        """The checked value; ValueError (the :meth:`error` sentence) when the text is refused."""
+        err = self.error()
+        if err:
+            raise ValueError(err)
+        text = self.text().strip()
+        return self.setting.check(text) if text else None
+
+    def _check(self) -> None:
+        err = self.error()
+        self.setStyleSheet(INVALID_STYLE if err else "")
+        self.setToolTip(err if err else self.base_tip)
+        self.changed.emit()
+
+    def wheelEvent(self, event: QtGui.QWheelEvent) -> None:  # noqa: N802 (Qt name)
+        event.ignore()  # never a value change: the panel scrolls instead
+
+
+class ChoiceField(NoWheelCombo):
+    """One of the setting's choices (or its ``none_text`` when optional)."""
+
+    changed = QtCore.Signal()
+
+    def __init__(self, setting: Setting, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.setting = setting
+        if setting.optional:
+            self.addItem(setting.none_text or "none", None)
+        for c in setting.choices:
+            self.addItem(c, c)
+        self.setToolTip(setting.tooltip)
+        self.set_value(setting.default)
+        self.currentIndexChanged.connect(lambda *_: self.changed.emit())
+
+    def set_value(self, value: Any) -> None:
+        i = self.findData(value)
+        if i >= 0:
+            self.setCurrentIndex(i)
+
+    def value(self) -> Any:
+        return self.currentData()
+
+    def error(self) -> str:
+        return ""
+
+
+class BoolField(QtWidgets.QCheckBox):
+    changed = QtCore.Signal()
+
+    def __init__(self, setting: Setting, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(setting.label, parent)
+        self.setting = setting
+        self.setToolTip(setting.tooltip)
+        self.setChecked(bool(setting.default))
+        self.toggled.connect(lambda *_: self.changed.emit())
+
+    def set_value(self, value: Any) -> None:
+        self.setChecked(bool(value))
+
+    def value(self) -> bool:
+        return self.isChecked()
+
+    def error(self) -> str:
+        return ""
+
+
+Field = ValueField | ChoiceField | BoolField
+
+
+def make_field(setting: Setting) -> Field:
+    if setting.kind == "choice":
+        return ChoiceField(setting)
+    if setting.kind == "bool":
+        return BoolField(setting)
+    return ValueField(setting)

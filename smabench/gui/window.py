@@ -23,9 +23,10 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from smabench import settings as schema
 from smabench.gui import words
 from smabench.gui.estop import KEY_NAMES, EStopGuard
-from smabench.gui.fields import FieldSpec, NoWheelCombo, NumberField
+from smabench.gui.fields import Field, NoWheelCombo, ValueField, label_for, make_field
 from smabench.gui.link import RuntimeLink, SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
 from smabench.gui.sessions_view import (
@@ -37,13 +38,16 @@ from smabench.gui.sessions_view import (
     shown_cycle,
 )
 from smabench.gui.specs import (
+    CONNECTION,
+    FIT_CYCLE,
     GAIN_LAWS,
-    field_specs,
-    fields_for_protocol,
-    needs_high_stress_confirmation,
+    OPEN_LOOP_CURRENT,
+    mode_uses,
+    shown,
+    stress_question,
 )
 from smabench.gui.state import IN_SESSION, NOT_CONNECTED, State, StateMachine, controls_for
-from smabench.protocols import PROTOCOL_NAMES, REFERENCE_NAMES
+from smabench.settings import GAIN_COMPONENTS, GAIN_SETS, PROTOCOL_NAMES, Setting, SettingError
 
 log = logging.getLogger(__name__)
 
@@ -87,9 +91,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._paused_at: float | None = None
         self._paused_total_s = 0.0
         self._remaining_text = "–"
+        self._question: QtWidgets.QMessageBox | None = None
+        self._fresh_session = False
         self.jobs = Jobs()
-        self.specs = field_specs()
-        self.fields: dict[str, NumberField] = {}
+        self.fields: dict[str, Field] = {}  # by settings-schema key
         self._build(mock_speed)
         self.guard = EStopGuard(self.estop, self)
         self.timer = QtCore.QTimer(self)
@@ -99,12 +104,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self._apply_state()
 
     # ------------------------------------------------------------------ layout
-    def _field(self, name: str, **override: Any) -> NumberField:
-        spec = self.specs[name]
-        if override:
-            spec = FieldSpec(**{**spec.__dict__, **override})
-        w = NumberField(spec)
-        self.fields[name] = w
+    def _field(self, setting: Setting) -> Field:
+        w = make_field(setting)
+        self.fields[setting.key] = w
         return w
 
     def _build(self, mock_speed: float) -> None:
@@ -145,7 +147,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.health = QtWidgets.QLabel("not connected")
         self.statusBar().addPermanentWidget(self.health)
         self.resize(1400, 900)
-        self._show_protocol_fields()
+        self._show_setting_fields()
         self._show_device_fields()
 
     def _run_bar(self) -> QtWidgets.QWidget:
@@ -217,10 +219,12 @@ class MainWindow(QtWidgets.QMainWindow):
         form.setFieldGrowthPolicy(QtWidgets.QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
         return w, form
 
-    def _add_field(self, form: QtWidgets.QFormLayout, name: str) -> NumberField:
-        w = self._field(name)
-        unit = f" ({w.spec.unit})" if w.spec.unit else ""
-        form.addRow(w.spec.label + unit, w)
+    def _add_field(self, form: QtWidgets.QFormLayout, setting: Setting) -> Field:
+        w = self._field(setting)
+        if setting.kind == "bool":
+            form.addRow(w)
+        else:
+            form.addRow(label_for(setting), w)
         return w
 
     def _experiment_panel(self) -> QtWidgets.QWidget:
@@ -228,16 +232,17 @@ class MainWindow(QtWidgets.QMainWindow):
         self.experiment_form = form
         self.protocol = NoWheelCombo()
         self.protocol.addItems(PROTOCOL_NAMES)
-        self.protocol.setToolTip("cycles, incomplete, inner, step, ramp: the current is set "
-                                 "directly (Open loop); step, staircase, sine, triangle: a "
-                                 "position reference for PID, FF or FF+PID")  # fmt: skip
-        self.protocol.currentTextChanged.connect(self._show_protocol_fields)
-        self.load_field = self._add_field(form, "load_kg")
+        self.protocol.setToolTip(schema.get("protocol.name").tooltip)
+        self.protocol.currentTextChanged.connect(self._show_setting_fields)
+        for setting in shown("load_wire"):
+            self._add_field(form, setting)
+        self.load_field = self.fields["load_kg"]
         form.addRow("protocol", self.protocol)
-        self.protocol_fields = [n for n, s in self.specs.items()
-                                if s.group == "experiment" and n != "load_kg"]  # fmt: skip
-        for name in self.protocol_fields:
-            self._add_field(form, name)
+        self.protocol_fields = [s.key for s in shown("protocol")]
+        for setting in shown("protocol"):
+            self._add_field(form, setting)
+        for setting in shown("loop"):
+            self._add_field(form, setting)
         self.load_field.changed.connect(self._show_table_gains)
         return w
 
@@ -247,12 +252,13 @@ class MainWindow(QtWidgets.QMainWindow):
                                 "with the output off.")  # fmt: skip
         note.setWordWrap(True)
         form.addRow(note)
-        for name in (n for n, s in self.specs.items() if s.group == "limits"):
-            self._add_field(form, name)
+        for setting in shown("limits"):
+            self._add_field(form, setting)
         return w
 
     def _controller_panel(self) -> QtWidgets.QWidget:
         w, form = self._form_panel()
+        self.controller_form = form
         row = QtWidgets.QHBoxLayout()
         self.mode_buttons: dict[str, QtWidgets.QRadioButton] = {}
         group = QtWidgets.QButtonGroup(w)
@@ -262,30 +268,42 @@ class MainWindow(QtWidgets.QMainWindow):
             row.addWidget(b)
             self.mode_buttons[mode] = b
             b.clicked.connect(lambda _=False, m=mode: self.set_mode(m))
+            b.toggled.connect(self._show_setting_fields)
         self.mode_buttons["open_loop"].setChecked(True)
         form.addRow(row)
         self.active_mode = QtWidgets.QLabel("active law: – (no session)")
         self.active_mode.setStyleSheet("font-weight: bold;")
         form.addRow(self.active_mode)
-        self._add_field(form, "open_loop_current_a")
+        self._add_field(form, OPEN_LOOP_CURRENT)
+        self.controller_fields = [s.key for s in shown("controller")]
+        for setting in shown("controller"):
+            self._add_field(form, setting)
+        self.gain_boxes: dict[str, QtWidgets.QGroupBox] = {}
         self.gain_table_boxes: dict[str, QtWidgets.QCheckBox] = {}
         self.gain_apply: dict[str, QtWidgets.QPushButton] = {}
-        for law, title, _units in GAIN_LAWS:
-            box = QtWidgets.QGroupBox(f"{title} gains")
+        for law, gs in GAIN_SETS.items():
+            box = QtWidgets.QGroupBox(f"{gs.label} gains")
             f = QtWidgets.QFormLayout(box)
             table = QtWidgets.QCheckBox("per-load table (follows the load)")
             table.setChecked(True)
             table.toggled.connect(lambda on, law=law: self.use_gain_table(law, on))
             self.gain_table_boxes[law] = table
             f.addRow(table)
-            for k in ("kp", "ki", "kd"):
-                fw = self._field(f"{law}_{k}")
-                f.addRow(f"{k.capitalize()} ({fw.spec.unit})", fw)
+            for key in gs.keys:
+                setting = next(s for s in shown("gains") if s.key == key)
+                fw = self._field(setting)
+                f.addRow(f"{key.rsplit('.', 1)[1]}" + (f" ({setting.unit})" if setting.unit
+                                                        else ""), fw)  # fmt: skip
             apply = QtWidgets.QPushButton("Apply these gains")
             apply.clicked.connect(lambda _=False, law=law: self.apply_gains(law))
             self.gain_apply[law] = apply
             f.addRow(apply)
+            self.gain_boxes[law] = box
             form.addRow(box)
+        self.gain_note = QtWidgets.QLabel("Open loop has no gains: choose PID or FF+PID to see "
+                                          "theirs.")  # fmt: skip
+        self.gain_note.setWordWrap(True)
+        form.addRow(self.gain_note)
         self.setpoint_label = QtWidgets.QLabel("setpoint –")
         form.addRow(self.setpoint_label)
         self._show_table_gains()
@@ -300,7 +318,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.use_mock.toggled.connect(self._show_device_fields)
         form.addRow(self.use_mock)
         form.addRow(self.use_real)
-        self.mock_speed = self._add_field(form, "mock_speed")
+        self.mock_speed = self._add_field(form, CONNECTION["mock_speed"])
         self.mock_speed.set_value(mock_speed)
         self.mock_effect = QtWidgets.QLineEdit()
         self.mock_effect.setPlaceholderText("e.g. latent_heat=24000 (optional)")
@@ -323,7 +341,7 @@ class MainWindow(QtWidgets.QMainWindow):
         form.addRow("sensor link", self.sensor_kind)
         self.sensor_host = QtWidgets.QLineEdit("192.168.0.10")
         form.addRow("TCP host", self.sensor_host)
-        self.sensor_tcp_port = self._add_field(form, "sensor_tcp_port")
+        self.sensor_tcp_port = self._add_field(form, CONNECTION["sensor_tcp_port"])
         self.sensor_rtu_port = NoWheelCombo()
         self.sensor_rtu_port.setEditable(True)
         form.addRow("RTU port", self.sensor_rtu_port)
@@ -331,7 +349,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.sensor_baud.addItems(["9600", "19200", "38400", "57600", "115200"])
         self.sensor_baud.setCurrentText("115200")
         form.addRow("RTU baud", self.sensor_baud)
-        self.sensor_unit = self._add_field(form, "sensor_unit")
+        self.sensor_unit = self._add_field(form, CONNECTION["sensor_unit"])
         self.sensor_map = NoWheelCombo()
         from smabench.drivers.displacement import available_maps
 
@@ -376,9 +394,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.fit_model.setCurrentText("sigmoid")
         row.addWidget(self.fit_model)
         row.addWidget(QtWidgets.QLabel("cycle"))
-        self.fit_cycle = NumberField(FieldSpec(
-            "fit_cycle", "cycle", None, 1, 100000, "", "cycle to fit, counted from 1",
-            integer=True, optional=True, empty_text="last"))  # fmt: skip
+        self.fit_cycle = ValueField(FIT_CYCLE)
         self.fit_cycle.setMaximumWidth(70)
         row.addWidget(self.fit_cycle)
         self.fit_button = QtWidgets.QPushButton("Fit selected session")
@@ -390,10 +406,29 @@ class MainWindow(QtWidgets.QMainWindow):
         return w
 
     # ------------------------------------------------------------------ field visibility
-    def _show_protocol_fields(self, *_: Any) -> None:
-        wanted = fields_for_protocol(self.specs, self.protocol.currentText())
-        for name in self.protocol_fields:
-            self.experiment_form.setRowVisible(self.fields[name], name in wanted)
+    def _show_setting_fields(self, *_: Any) -> None:
+        """Only what the chosen protocol and control law use is on screen."""
+        if not hasattr(self, "gain_note") or not hasattr(self, "experiment_form"):
+            return  # still building
+        name = self.protocol.currentText()
+        mode = self.selected_mode()
+        closed = mode != "open_loop"
+        for key in self.protocol_fields:
+            setting = self.fields[key].setting
+            self.experiment_form.setRowVisible(self.fields[key], setting.uses(name, closed))
+        for key in self.controller_fields:
+            setting = self.fields[key].setting
+            self.controller_form.setRowVisible(self.fields[key],
+                                               closed and mode_uses(setting, mode))  # fmt: skip
+        self.controller_form.setRowVisible(self.fields[OPEN_LOOP_CURRENT.key],
+                                           self.session_controller)  # fmt: skip
+        for law, box in self.gain_boxes.items():
+            uses = (law == "pid" and mode == "pid") or (law != "pid" and mode == "ffpid")
+            self.controller_form.setRowVisible(box, uses)
+        self.controller_form.setRowVisible(self.gain_note, mode in ("open_loop", "ff"))
+        self.gain_note.setText("Open loop has no gains: choose PID or FF+PID to see theirs."
+                               if mode == "open_loop" else
+                               "FF (feed-forward alone) has no feedback gains.")  # fmt: skip
 
     def _show_device_fields(self, *_: Any) -> None:
         mock = self.use_mock.isChecked()
@@ -408,7 +443,7 @@ class MainWindow(QtWidgets.QMainWindow):
         for wdg in (self.sensor_rtu_port, self.sensor_baud):
             f.setRowVisible(wdg, not mock and not tcp)
 
-    def visible_fields(self) -> list[NumberField]:
+    def visible_fields(self) -> list[Field]:
         return [f for f in self.fields.values() if f.isVisibleTo(self)]
 
     # ------------------------------------------------------------------ state
@@ -440,11 +475,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.stop_button.setEnabled(c.stop)
         self.banner.setVisible(st == State.ESTOPPED)
         self.ack_button.setEnabled(c.acknowledge)
-        for name, f in self.fields.items():
-            spec = f.spec
-            if spec.group in ("mock", "tcp", "real"):
+        for f in self.fields.values():
+            if f.setting.group == "connection":
                 f.setEnabled(c.connection_fields)
-            elif not spec.live and name != "fit_cycle":
+            elif not f.setting.live:
                 f.setEnabled(c.session_fields)
         for wdg in (self.use_mock, self.use_real, self.mock_effect, self.port_row,
                     self.sensor_kind, self.sensor_host, self.sensor_rtu_port, self.sensor_baud,
@@ -553,72 +587,88 @@ class MainWindow(QtWidgets.QMainWindow):
         """Sentences for the visible fields that are not valid (empty: all good)."""
         return [e for f in self.visible_fields() if (e := f.error())]
 
-    def settings_dict(self) -> dict[str, Any]:
-        """The session's settings from the fields; ValueError in words when one is wrong."""
+    def settings_dict(self, allow_high_stress: bool = False) -> dict[str, Any]:
+        """The start message from the fields (the schema's JSON shape; settings at their
+        default left out), checked by the schema; ValueError in words when one is refused."""
         errors = self.field_errors()
         if errors:
             raise ValueError(errors[0])
         name = self.protocol.currentText()
         mode = self.selected_mode()
-        if mode == "open_loop" and name not in ("cycles", "incomplete", "inner", "step", "ramp"):
-            raise ValueError(f"the {name} protocol is a position reference: choose PID, FF or "
-                             "FF+PID in the Controller tab, or an open-loop protocol")  # fmt: skip
-        closed = mode != "open_loop" and name in REFERENCE_NAMES
-        if mode != "open_loop" and not closed:
-            raise ValueError(f"the {name} protocol sets the current directly: choose Open loop "
-                             "in the Controller tab, or a position reference (step, staircase, "
-                             "sine, triangle)")  # fmt: skip
-        lo, hi = self._v("position_min_mm"), self._v("position_max_mm")
-        if lo is not None and hi is not None and lo >= hi:
-            raise ValueError(f"the lowest position ({lo:g} mm) must be below the highest "
-                             f"({hi:g} mm)")  # fmt: skip
-        limit = self._v("current_limit_a")
-        wanted = fields_for_protocol(self.specs, name)
-        if "current_a" in wanted and self._v("current_a") > limit:
-            raise ValueError(f"the current ({self._v('current_a'):g} A) is above the current "
-                             f"limit ({limit:g} A, Limits tab)")  # fmt: skip
-        proto: dict[str, Any] = {"name": name}
-        for n in wanted - {"load_kg"}:
-            proto[n] = self._v(n)
-        out: dict[str, Any] = {
-            "load_kg": self._v("load_kg"),
-            "out_dir": str(self.sessions_dir),
-            "time_scale": self.mock_speed.value() if self.use_mock.isChecked() else 1.0,
-            "protocol": proto,
-            "current_limit_a": limit,
-            "temperature_limit_c": self._v("temperature_limit_c"),
-            "position_min_mm": lo,
-            "position_max_mm": hi,
-            "max_duration_s": self._v("max_duration_s"),
-        }
+        closed = mode != "open_loop"
+        flat: dict[str, Any] = {"protocol.name": name}
+        for key, f in self.fields.items():
+            st = f.setting
+            if st.key not in schema.SETTINGS or st.group == "gains":
+                continue
+            if st.group == "controller" and not (closed and mode_uses(st, mode)):
+                continue
+            if st.group == "protocol" and not st.uses(name, closed):
+                continue
+            v = f.value()
+            if st.required or v != st.default:
+                flat[key] = v
         if closed:
-            from smabench.control import gains_for_load
-
-            ctl: dict[str, Any] = {"mode": mode}
-            for law, key in (("pid", "gains"), ("ffpid", "ffpid_gains"),
-                             ("ffpid_hold", "ffpid_hold_gains")):  # fmt: skip
+            flat["controller.mode"] = mode
+            for law, gs in GAIN_SETS.items():
                 g = self.custom_gains[law]
-                if g is not None:  # the table's derivative filter is kept
-                    ctl[key] = [*g, gains_for_load(out["load_kg"], law=law).d_filter_s]
-            out["controller"] = ctl
-        return out
+                if g is not None:
+                    flat.update({f"{gs.key}.{c}": v for c, v in zip(GAIN_COMPONENTS, g,
+                                                                   strict=True)})  # fmt: skip
+        if allow_high_stress:
+            flat["allow_high_stress"] = True
+        flat["out_dir"] = str(self.sessions_dir)
+        if self.use_mock.isChecked() and self.mock_speed.value() != 1.0:
+            flat["time_scale"] = self.mock_speed.value()
+        try:  # the schema's own check: ranges and the rules across settings
+            schema.check_run(schema.values_from_mapping(schema.to_mapping(flat)))
+        except SettingError as exc:
+            raise ValueError(words.plain(str(exc)).rstrip(".")) from None
+        return schema.to_mapping(flat)
 
     def start_experiment(self) -> None:
         """Check the fields, confirm a high-stress load, connect if needed, send the start."""
-        if not controls_for(self.state).start:
+        if not controls_for(self.state).start or self._question is not None:
             return
+        errors = self.field_errors()
+        if errors:
+            self.say(f"Not started: {errors[0]}.", error=True)
+            return
+        question = stress_question(self._v("load_kg"), self._v("wire_preset"),
+                                   self._v("long_life_stress_mpa"))  # fmt: skip
         try:
-            settings = self.settings_dict()
+            settings = self.settings_dict(allow_high_stress=bool(question))
             cfg = self.devices_config()
         except ValueError as exc:
             self.say(f"Not started: {exc}.", error=True)
             return
-        question = needs_high_stress_confirmation(settings["load_kg"])
-        if question and not self._confirm(question):
-            self.say("Not started: the high-stress load was not confirmed.")
-            return
-        if self.state == State.ESTOPPED:  # latched while the question was open
-            return
+        if question:
+            self._ask(question, lambda: self._start_with(settings, cfg))
+        else:
+            self._start_with(settings, cfg)
+
+    def _ask(self, question: str, proceed: Any) -> None:
+        """A yes/no question that leaves the window usable (the E-STOP button too)."""
+        box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Warning, "High stress", question,
+                                    QtWidgets.QMessageBox.StandardButton.Yes
+                                    | QtWidgets.QMessageBox.StandardButton.No, self)  # fmt: skip
+        box.setDefaultButton(QtWidgets.QMessageBox.StandardButton.No)
+        box.setWindowModality(QtCore.Qt.WindowModality.NonModal)
+        self._question = box
+
+        def answered(result: int) -> None:
+            self._question = None
+            if result == QtWidgets.QMessageBox.StandardButton.Yes and controls_for(
+                self.state
+            ).start:
+                proceed()
+            else:
+                self.say("Not started: the high-stress load was not confirmed.")
+
+        box.finished.connect(answered)
+        box.show()
+
+    def _start_with(self, settings: dict[str, Any], cfg: dict[str, Any]) -> None:
         if self.link is not None and cfg != self.link_config:
             self.say("The connection settings changed: reconnecting first.")
             self.disconnect_devices()
@@ -628,19 +678,12 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         self._send_start(settings)
 
-    def _confirm(self, question: str) -> bool:
-        box = QtWidgets.QMessageBox(QtWidgets.QMessageBox.Icon.Warning, "High stress", question,
-                                    QtWidgets.QMessageBox.StandardButton.Yes
-                                    | QtWidgets.QMessageBox.StandardButton.No, self)  # fmt: skip
-        box.setDefaultButton(QtWidgets.QMessageBox.StandardButton.No)
-        self._dialog = box
-        return box.exec() == QtWidgets.QMessageBox.StandardButton.Yes
-
     def _send_start(self, settings: dict[str, Any]) -> None:
         self.pending_start = None
         self.fire("start")
         self.session_controller = "controller" in settings
         self.pending_settings = settings
+        self._fresh_session = True
         self.link.start(settings)
         self.say("Starting …")
 
@@ -693,29 +736,41 @@ class MainWindow(QtWidgets.QMainWindow):
         if not (self.state in (State.RUNNING, State.PAUSED) and self.session_controller):
             return
         if mode == "open_loop":
-            current = self.fields["open_loop_current_a"]
-            if current.error():
-                self.say(f"Not switched: {current.error()}.", error=True)
+            current = self.fields[OPEN_LOOP_CURRENT.key]
+            err = current.error()
+            limit = self.fields["current_limit_a"].value()
+            if not err and current.value() > limit:
+                err = (f"open-loop current {current.value():g} A is above the current limit "
+                       f"{limit:g} A")  # fmt: skip
+            if err:
+                self.say(f"Not switched: {err}.", error=True)
                 self.mode_buttons[self.status.get("mode", "pid")].setChecked(True)
                 return
             self.link.send(f"open_current {current.value():g}")
         self.link.send(f"mode {mode}")
 
+    def _gain_fields(self, law: str) -> list[Field]:
+        return [self.fields[k] for k in GAIN_SETS[law].keys]
+
     def _show_table_gains(self) -> None:
-        """Fields of the gain sets that follow the per-load table show its gains."""
+        """Gain sets that follow the per-load table show its gains for the load (read-only)."""
         from smabench.control import gains_for_load
 
         if self.load_field.error():
             return
         load = self.load_field.value()
-        for law, *_ in GAIN_LAWS:
-            if self.custom_gains[law] is None:
-                g = gains_for_load(load, law=law)
-                for k, v in (("kp", g.kp), ("ki", g.ki), ("kd", g.kd)):
-                    self.fields[f"{law}_{k}"].set_value(round(v, 4))
+        for law in GAIN_SETS:
+            table = self.custom_gains[law] is None
+            g = gains_for_load(load, law=law)
+            for f, v in zip(self._gain_fields(law), (g.kp, g.ki, g.kd, g.d_filter_s),
+                            strict=True):  # fmt: skip
+                if table:
+                    f.set_value(round(v, 4))
+                f.setReadOnly(table)
 
     def use_gain_table(self, law: str, on: bool) -> None:
         """Back to (or away from) the per-load table for one gain set; live when running."""
+        label = GAIN_SETS[law].label
         if on:
             self.custom_gains[law] = None
             self._show_table_gains()
@@ -724,12 +779,20 @@ class MainWindow(QtWidgets.QMainWindow):
 
                 g = gains_for_load(self.load_field.value(), law=law)
                 self.link.send(f"gains {g.kp} {g.ki} {g.kd} {law}")
-            self.say(f"{dict((a, b) for a, b, _ in GAIN_LAWS)[law]} gains: per-load table.")
+                self.say(f"{label} gains: back to the per-load table, in the running session.")
+            else:
+                self.say(f"{label} gains: the per-load table.")
+        else:
+            for f in self._gain_fields(law):
+                f.setReadOnly(False)
+            self.say(f"{label} gains: edit them, then press Apply.")
 
     def apply_gains(self, law: str) -> None:
         """Use the fields' gains for ``law`` from now on (live when running)."""
-        fs = [self.fields[f"{law}_{k}"] for k in ("kp", "ki", "kd")]
-        bad = [f.error() for f in fs if f.error()]
+        fs = self._gain_fields(law)
+        bad = [f.error() or (f"{f.setting.label}: enter a value" if not f.text().strip() else "")
+               for f in fs]  # fmt: skip
+        bad = [b for b in bad if b]
         if bad:
             self.say(f"Gains not applied: {bad[0]}.", error=True)
             return
@@ -738,12 +801,16 @@ class MainWindow(QtWidgets.QMainWindow):
         box.blockSignals(True)
         box.setChecked(False)
         box.blockSignals(False)
-        title = dict((a, b) for a, b, _ in GAIN_LAWS)[law]
+        for f in fs:
+            f.setReadOnly(False)
+        label = GAIN_SETS[law].label
         if self._live_controller():
-            self.link.send("gains " + " ".join(map(str, self.custom_gains[law])) + f" {law}")
-            self.say(f"{title} gains applied to the running session.")
+            kp, ki, kd, _ = self.custom_gains[law]
+            self.link.send(f"gains {kp} {ki} {kd} {law}")
+            self.say(f"{label} gains applied to the running session (the derivative filter "
+                     "changes from the next session).")  # fmt: skip
         else:
-            self.say(f"{title} gains will be used from the next session.")
+            self.say(f"{label} gains will be used from the next session.")
 
     def _live_controller(self) -> bool:
         return (self.state in (State.RUNNING, State.PAUSED) and self.session_controller
@@ -757,6 +824,8 @@ class MainWindow(QtWidgets.QMainWindow):
             rows = link.take_rows()
             if rows.size and self.state in (State.RUNNING, State.PAUSED, State.STARTING,
                                             State.ESTOPPED):  # fmt: skip
+                if self._fresh_session:  # the first rows of a new session
+                    self._clear_live()
                 self.buffer.append_rows(rows)
             for kind, payload in link.poll():
                 if self.link is not link:  # disconnected while handling an event
@@ -797,6 +866,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if "error" in st:
             text = words.plain(st["error"])
             if st.get("command") == "start" or self.state == State.STARTING:
+                self._fresh_session = False  # a refused start leaves the plots as they were
                 self.fire("refused")
                 self.say(f"Not started: {text}", error=True)
             else:
@@ -805,10 +875,8 @@ class MainWindow(QtWidgets.QMainWindow):
         if "started" in st:
             self.session_folder = Path(st["started"])
             self._paused_total_s, self._paused_at = 0.0, None
-            self.buffer.clear()
-            self.loop_plot.reset()
-            self.time_plots.reset()
-            self.time_plots.follow = True
+            if self._fresh_session:
+                self._clear_live()
             self.progress.setValue(0)
             self.last_end = None
             self.fire("started")
@@ -817,6 +885,14 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         self.status = st
         self._show_status(st)
+
+    def _clear_live(self) -> None:
+        """The live plots start over (a new session's first rows or its start)."""
+        self._fresh_session = False
+        self.buffer.clear()
+        self.loop_plot.reset()
+        self.time_plots.reset()
+        self.time_plots.follow = True
 
     def _show_status(self, st: dict[str, Any]) -> None:
         stats = st.get("sensor_stats", {})

@@ -73,6 +73,8 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         for p in args.sessions
     ]
     t_load = time.perf_counter() - t0
+    for note in sorted({n for s in sessions for n in s.notes}):
+        print(f"smabench analyze: assumed: {note}", file=sys.stderr)
     n = sum(len(s.t) for s in sessions)
     say(f"{len(sessions)} session(s), {n} samples, loaded in {t_load:.2f} s")
     cands = None
@@ -82,6 +84,11 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     doc = summary(an)
     doc["timing_s"]["load"] = t_load
     print(f"cause: {doc['cause']}   runner-up: {doc['runner_up']}   ({doc['reason']})")
+    if len(doc["causes"]) > 1:
+        print("causes: " + ", ".join(f"{c['cause']} (+{c['incremental_gain']:.1%} over "
+                                     f"{c['over']})" for c in doc["causes"]))  # fmt: skip
+    for flag in doc["flags"]:
+        print(f"flag: {flag}")
     print(
         f"held-out RMSE: baseline {doc['baseline_heldout_rmse_mm']:.4g} mm, extended "
         f"({doc['extended_model']}) {doc['extended_heldout_rmse_mm']:.4g} mm, "

@@ -37,11 +37,19 @@ from scipy.optimize import least_squares
 from scipy.stats import ttest_1samp, wilcoxon
 from threadpoolctl import threadpool_limits
 
-from smabench.analysis.data import AnalysisError, SessionData, make_grid
-from smabench.analysis.model import (
+from smabench.analysis.candidates import (
+    BASELINE,
     CANDIDATES,
     COUPLED,
     CP_J_KGK,
+    PARAMS,
+    REGISTRY,
+    cause_text,
+    members,
+    unit_of,
+)
+from smabench.analysis.data import AnalysisError, SessionData, make_grid
+from smabench.analysis.model import (
     LINEAR,
     Grid,
     Temps,
@@ -77,38 +85,13 @@ FIT_POINTS_MAX = 15000
 """Most training residuals per fit: a longer training part keeps whole cycles evenly spread
 over it (every k-th cycle; the simulation still runs through all of them)."""
 
-# name: (scale, lo, hi, start)
-_BASE = {
-    "tau_s": (4.0, 0.2, 120.0, 4.0),
-    "h_mid": (10.0, -50.0, 250.0, 70.0),
-    "h_w": (10.0, 2.0, 80.0, 10.0),
-    "c_mid": (10.0, -50.0, 250.0, 50.0),
-    "c_w": (10.0, 2.0, 80.0, 10.0),
-    "h_shape": (0.3, 0.0, 1.0, 0.3),
-    "memory": (0.3, 0.0, 1.0, 0.0),
-    "c_shape": (0.3, 0.0, 1.0, 0.3),
-    "tau_heat_s": (0.1, 0.0, 5.0, 0.05),
-    "tau_cool_s": (0.5, 0.0, 5.0, 0.2),
-    "shrink_k_per_mpa": (0.03, 0.0, 0.1, 0.0),
-}
-_EXT = {
-    "phase_resistance": {"beta": (0.2, -0.8, 0.8, 0.05)},
-    "latent_heat": {"lat_k": (20.0, 0.0, 80.0, 10.0)},
-    "stress_shift": {"ss_k_per_mpa": (0.1, -0.3, 1.0, 0.1)},
-    "convection_nonlinear": {"conv_k": (0.005, 0.0, 0.1, 0.003)},
-    "sensor_lag": {"lag_s": (0.2, 0.0, 10.0, 0.2), "delay_s": (0.2, 0.0, 10.0, 0.0)},
-    "ambient_drift": {"drift_k_h": (5.0, -60.0, 60.0, 0.0)},
-    "cycle_drift": {"cyc_rate": (2e-4, -3e-3, 3e-3, 0.0), "cyc_nsat": (20.0, 1.0, 1000.0, 30.0)},
-}
+_BASE_NAMES = frozenset(p.name for p in BASELINE)
 
 
-FRESH_STARTS = {
-    "convection_nonlinear": (0.008, 0.02),
-    "latent_heat": (15.0, 30.0),
-    "phase_resistance": (-0.2, 0.2),
-}
-"""Values of the coupled candidates' parameter for extra starts found from the data alone."""
-
+SHAPE_STARTS = ((-0.8, -0.8), (-0.8, 0.8), (0.8, -0.8), (0.8, 0.8), (0.0, 0.0))
+"""Branch shapes (h_shape, c_shape) the baseline fit starts from (Tanaka-like, logistic,
+cosine), each for SCREEN_NFEV evaluations before the full fit from the best."""
+SCREEN_NFEV = 12
 
 @dataclass
 class Fold:
@@ -170,16 +153,16 @@ def make_problem(sessions: list[SessionData], requested: list[str] | None = None
     stresses = [s.stress_mpa or 0.0 for s in sessions]
     sigma_ref = float(np.mean(stresses)) if stresses else 0.0
     skipped: dict[str, str] = {}
-    total_cycles = sum(s.n_complete for s in sessions)
+    most_cycles = max(s.n_complete for s in sessions)
     for c in CANDIDATES:
-        if c == "stress_shift" and not multi:
+        needs = REGISTRY[c].needs
+        if needs == "loads" and not multi:
             skipped[c] = "needs sessions at two loads or more"
-        elif c in ("phase_resistance", "latent_heat", "convection_nonlinear", "ambient_drift") and (
-            "current" not in kinds
-        ):
+        elif needs == "heat_balance" and "current" not in kinds:
             skipped[c] = "needs a heat balance (current-driven sessions); thermometer loops only"
-        elif c == "cycle_drift" and total_cycles < 1:
-            skipped[c] = "needs complete cycles"
+        elif needs == "cycles" and most_cycles < REGISTRY[c].min_cycles:
+            skipped[c] = (f"needs {REGISTRY[c].min_cycles} complete cycles in one session or "
+                          f"more (most here: {most_cycles})")  # fmt: skip
     if requested:
         unknown = [c for c in requested if c not in CANDIDATES]
         if unknown:
@@ -269,13 +252,15 @@ def make_folds(prob: Problem) -> list[Fold]:
 # --------------------------------------------------------------------------- fitting
 def _spec(prob: Problem, model: str) -> tuple[list[str], np.ndarray, np.ndarray, np.ndarray,
                                               np.ndarray]:  # fmt: skip
+    """Names, scales, bounds and starts of ``model``'s parameters ("baseline", a candidate, or
+    candidates joined by "+"), all from the registry."""
     kinds = {s.kind for s in prob.sessions}
     names = []
     if "current" in kinds:
         names += ["tau_s"]
-    names += ["h_mid", "h_w", "c_mid", "c_w", "h_shape", "c_shape", "memory"]
+    names += ["h_mid", "h_w", "hyst_k", "c_w", "h_shape", "c_shape", "memory"]
     if "current" in kinds:
-        names += ["tau_heat_s", "tau_cool_s"]
+        names += ["tau_heat_s", "tau_cool_s", "kin_sqrt"]
     n_loads = len(stress_groups(prob.sessions))
     if n_loads >= 3 or (n_loads == 2 and all(len(np.unique(s.cycle)) >= 3 for s in prob.sessions)):
         # loops narrow under load (paper Fig. 11). Two loads: learnt when the training part
@@ -283,17 +268,16 @@ def _spec(prob: Problem, model: str) -> tuple[list[str], np.ndarray, np.ndarray,
         # load (thermometer loops) loses part of a branch to the held-out third, and narrowing
         # and a common shift could not both be learnt from the rest: width fixed then
         names += ["shrink_k_per_mpa"]
-    table = dict(_BASE)
-    if model != "baseline":
-        ext = dict(_EXT[model])
-        if model == "cycle_drift" and sum(s.n_complete for s in prob.sessions) < 20:
-            ext.pop("cyc_nsat")
-        names += list(ext)
-        table.update(ext)
-    scale = np.array([table[n][0] for n in names])
-    lo = np.array([table[n][1] for n in names])
-    hi = np.array([table[n][2] for n in names])
-    start = np.array([table[n][3] for n in names])
+    most_cycles = max(s.n_complete for s in prob.sessions)
+    for c in members(model):
+        cand = REGISTRY[c]
+        names += [n for n in cand.param_names
+                  if not (n in cand.many_cycles and most_cycles < 20)]  # fmt: skip
+    table = [PARAMS[n] for n in names]
+    scale = np.array([p.scale for p in table])
+    lo = np.array([p.lo for p in table])
+    hi = np.array([p.hi for p in table])
+    start = np.array([p.start for p in table])
     return names, scale, lo, hi, start
 
 
@@ -395,7 +379,7 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray
     x = start.copy()
     idx = {n: i for i, n in enumerate(names)}
     fixed = {"sigma_ref": prob.sigma_ref}
-    extra = {n: float(x[i]) for n, i in idx.items() if n not in _BASE}
+    extra = {n: float(x[i]) for n, i in idx.items() if n not in _BASE_NAMES}
 
     def temps_for(tau: float):
         ts, ps = [], []
@@ -419,6 +403,8 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray
         xt = x.copy()
         if "tau_s" in idx:
             xt[idx["tau_s"]] = tau
+        if "c_mid" in guess and "h_mid" in guess:
+            guess["hyst_k"] = max(guess["h_mid"] - guess.pop("c_mid"), 1.0)
         for k, v in guess.items():
             xt[idx[k]] = v
         xt = np.clip(xt, lo, hi)
@@ -467,21 +453,20 @@ def _fit_model(
     x0 = np.clip(x0, lo, hi)
     obj = _Objective(prob, fold, names, scale)
     starts = [x0]
-    second = {"stress_shift": ("ss_k_per_mpa", 0.0), "convection_nonlinear": ("conv_k", 0.015)}
-    if model in second:  # a second start: the baseline compensates strong effects elsewhere
-        pname, v = second[model]
-        xs = x0.copy()
-        xs[names.index(pname)] = v
-        starts.append(xs)
-    if base is not None and model in FRESH_STARTS:
-        # a strong coupled effect bends the baseline's thermal parameters far from their true
-        # values, and the fit from there can stall: fresh starts from the data, the effect on
-        pname = next(n for n in names if n not in _BASE)
-        for v in FRESH_STARTS[model]:
-            xs = start.copy()
-            xs[names.index(pname)] = v
-            starts.append(np.clip(_start(prob, fold, names, scale, lo, hi, xs), lo, hi))
-    if model == "sensor_lag" and "tau_heat_s" in names:
+    for cand in (REGISTRY[c] for c in members(model)):
+        pname = cand.params[0].name
+        if cand.second_start is not None:  # the baseline compensates strong effects elsewhere
+            xs = x0.copy()
+            xs[names.index(pname)] = cand.second_start
+            starts.append(xs)
+        if base is not None and cand.fresh_starts and len(members(model)) == 1:
+            # a strong coupled effect bends the baseline's thermal parameters far from their
+            # true values, and the fit from there can stall: fresh starts, the effect on
+            for v in cand.fresh_starts:
+                xs = start.copy()
+                xs[names.index(pname)] = v
+                starts.append(np.clip(_start(prob, fold, names, scale, lo, hi, xs), lo, hi))
+    if "lag_s" in names and "tau_heat_s" in names:
         # the baseline's kinetic lags absorb a sensor delay (equal lags on both branches look
         # like one): a second start moves their common part into the sensor lag
         ih, ic = names.index("tau_heat_s"), names.index("tau_cool_s")
@@ -497,11 +482,23 @@ def _fit_model(
     if starts_from is not None:
         starts = [np.clip(np.asarray(x, float), lo, hi) for x in starts_from]
 
-    def run(xs):
+    def run(xs, nfev=None):
         return least_squares(
             obj, xs / scale, bounds=(lo / scale, hi / scale), diff_step=1e-4,
-            max_nfev=max_nfev, x_scale=1.0, method="trf", ftol=1e-7, xtol=1e-7,
+            max_nfev=nfev or max_nfev, x_scale=1.0, method="trf", ftol=1e-7, xtol=1e-7,
         )  # fmt: skip
+
+    if base is None and starts_from is None:
+        # branch shapes have local minima apart (a Tanaka-like start against a logistic tail):
+        # a short fit from each shape pair, then the full fit from the best
+        ih, ic = names.index("h_shape"), names.index("c_shape")
+        screen = []
+        for hs, cs in SHAPE_STARTS:
+            xs = x0.copy()
+            xs[ih], xs[ic] = hs, cs
+            r0 = run(np.clip(xs, lo, hi), SCREEN_NFEV)
+            screen.append((r0.cost, r0.x * scale))
+        starts = [min(screen, key=lambda c: c[0])[1]]
 
     best = None
     for xs in starts:
@@ -513,7 +510,7 @@ def _fit_model(
         xs = x0.copy()
         for i, n in enumerate(names):
             if n not in base.values:
-                xs[i] = 0.0 if lo[i] <= 0.0 <= hi[i] else lo[i]
+                xs[i] = 0.0 if lo[i] <= 0.0 <= hi[i] else start[i]
         res = run(xs)
         if res.cost < best.cost:
             best = res
@@ -673,6 +670,7 @@ def verdict(
     cand_rmse: dict[str, float],
     noise_mm: float,
     stroke_mm: float,
+    ruled_out: dict[str, str] | None = None,
 ) -> dict:
     """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs.
 
@@ -686,6 +684,9 @@ def verdict(
         gain = 1.0 - cand_rmse[c] / base_rmse if base_rmse > 0 else 0.0
         p = paired_greater(base_units, u, tie)
         rows[c] = {"gain": gain, "p_value": p, "significant": bool(p < ALPHA and gain >= MIN_GAIN)}
+        if ruled_out and c in ruled_out:
+            rows[c]["significant"] = False
+            rows[c]["ruled_out"] = ruled_out[c]
     order = sorted(rows, key=lambda c: -rows[c]["gain"])
     floor = max(FLOOR_NOISE * noise_mm, FLOOR_STROKE * stroke_mm)
     structured = bool(base_rmse > floor)
@@ -743,8 +744,8 @@ def _consensus(prob: Problem, folds: list[Fold], model: str, fits: dict, run_all
     if len(folds) < 2:
         return
     names, scale, *_ = _spec(prob, model)
-    own = [i for i, n in enumerate(names) if n not in _BASE] if model != "baseline" else \
-        list(range(len(names)))  # fmt: skip
+    own = [i for i, n in enumerate(names) if n not in _BASE_NAMES] if model != "baseline" \
+        else list(range(len(names)))  # fmt: skip
     cur = fits[model]
     tasks, where = [], []
     for i in range(len(folds)):
@@ -819,6 +820,29 @@ def analyse(
         say(f"[{folds[fi].name}] {model}{what}: train rmse {f.train_rmse_mm:.4g} mm "
             f"({f.nfev} evaluations, {f.seconds:.1f} s)")  # fmt: skip
 
+    heldout = {s.name: np.zeros(len(s.t), dtype=bool) for s in prob.sessions}
+    preds: dict[str, dict[str, Prediction]] = {}
+    unit_rmse: dict[str, np.ndarray] = {}
+    rmse: dict[str, float] = {}
+    units = held_out_units(prob, folds)
+    by_name = {s.name: s for s in prob.sessions}
+    for s in prob.sessions:
+        for fold in folds:
+            heldout[s.name] |= fold.test[s.name]
+
+    def evaluate(model: str) -> None:
+        preds[model] = _predictions(prob, folds, fits[model])
+        u, allres = [], []
+        for name, _fi, ii in units:
+            r = preds[model][name].position_mm[ii] - by_name[name].pos[ii]
+            u.append(_rmse(r))
+            allres.append(r)
+        unit_rmse[model] = np.array(u)
+        rmse[model] = _rmse(np.concatenate(allres)) if allres else math.nan
+
+    noise = float(np.median([s.noise_mm() for s in prob.sessions]))
+    stroke = float(np.median([np.percentile(s.pos, 98) - np.percentile(s.pos, 2)
+                              for s in prob.sessions]))  # fmt: skip
     try:
         fits["baseline"] = run_all([(fold, "baseline") for fold in folds])
         for fi, f in enumerate(fits["baseline"]):
@@ -831,71 +855,136 @@ def analyse(
             for fi, f in enumerate(fits[c]):
                 report(c, fi, f)
             _consensus(prob, folds, c, fits, run_all, report)
+        for model in models:
+            evaluate(model)
+        ruled_out = _evidence(prob, fits, preds)
+        v = verdict(
+            unit_rmse["baseline"], {c: unit_rmse[c] for c in prob.candidates}, rmse["baseline"],
+            {c: rmse[c] for c in prob.candidates}, noise, stroke, ruled_out,
+        )  # fmt: skip
+        v["causes"] = []
+        if v["cause"] in REGISTRY:
+            v["causes"] = _more_causes(prob, folds, fits, v, run_all, report, evaluate,
+                                       unit_rmse, rmse, noise, ruled_out)  # fmt: skip
     finally:
         if pool is not None:
             pool.shutdown()
-    # held-out predictions: each session from the fold that holds it out
-    heldout = {s.name: np.zeros(len(s.t), dtype=bool) for s in prob.sessions}
-    preds: dict[str, dict[str, Prediction]] = {m: {} for m in models}
-    for s in prob.sessions:
-        for fi, fold in enumerate(folds):
-            m = fold.test[s.name]
-            if not m.any():
-                continue
-            for model in models:
-                pr = predict(prob, fits[model][fi], s, fold.train[s.name])
-                old = preds[model].get(s.name)
-                if old is None:
-                    preds[model][s.name] = Prediction(
-                        np.where(m, pr.position_mm, np.nan), pr.temp_c, pr.xi
-                    )
-                else:
-                    old.position_mm[m] = pr.position_mm[m]
-            heldout[s.name] |= m
-    # in-sample (training) predictions where a session is never held out: fold 0's fit
-    for s in prob.sessions:
-        for model in models:
-            if s.name not in preds[model]:
-                pr = predict(prob, fits[model][0], s, folds[0].train[s.name])
-                preds[model][s.name] = pr
-            else:
-                pm = preds[model][s.name].position_mm
-                nan = ~np.isfinite(pm)
-                if nan.any():
-                    fi = next(
-                        i for i, f in enumerate(folds) if f.train[s.name].any()
-                    ) if any(f.train[s.name].any() for f in folds) else 0
-                    pm[nan] = predict(prob, fits[model][fi], s, folds[fi].train[s.name]
-                                      ).position_mm[nan]  # fmt: skip
-    units = held_out_units(prob, folds)
-    by_name = {s.name: s for s in prob.sessions}
-    unit_rmse = {}
-    rmse = {}
-    for model in models:
-        u = []
-        allres = []
-        for name, _fi, ii in units:
-            r = preds[model][name].position_mm[ii] - by_name[name].pos[ii]
-            u.append(_rmse(r))
-            allres.append(r)
-        unit_rmse[model] = np.array(u)
-        rmse[model] = _rmse(np.concatenate(allres)) if allres else math.nan
-    noise = float(np.median([s.noise_mm() for s in prob.sessions]))
-    stroke = float(np.median([np.percentile(s.pos, 98) - np.percentile(s.pos, 2)
-                              for s in prob.sessions]))  # fmt: skip
-    v = verdict(
-        unit_rmse["baseline"], {c: unit_rmse[c] for c in prob.candidates}, rmse["baseline"],
-        {c: rmse[c] for c in prob.candidates}, noise, stroke,
-    )  # fmt: skip
     v["noise_mm"] = noise
     v["stroke_mm"] = stroke
     timing["total"] = time.perf_counter() - t_start
     return Analysis(prob, folds, fits, preds, heldout, units, unit_rmse, rmse, v, timing)
 
 
+MAX_CAUSES = 3
+"""At most this many causes are named together."""
+
+
+def _more_causes(prob, folds, fits, v, run_all, report, evaluate, unit_rmse, rmse, noise,
+                 ruled_out) -> list[dict]:  # fmt: skip
+    """After the first cause: fit every other candidate on top of the causes named so far and
+    name each that passes the same held-out paired test against them (α, minimum gain), best
+    first. Only candidates that cut the held-out error on their own (gain > 0) are tried."""
+    first = v["cause"]
+    chain = [first]
+    out = [{"cause": first, "model": first, "gain": v["rows"][first]["gain"],
+            "p_value": v["rows"][first]["p_value"], "over": "baseline"}]  # fmt: skip
+    tie = TIE_NOISE * noise
+    while len(chain) < MAX_CAUSES:
+        current = "+".join(chain)
+        others = [c for c in prob.candidates if c not in chain and c not in ruled_out
+                  and v["rows"][c]["gain"] > 0]  # fmt: skip
+        if not others:
+            break
+        tasks = []
+        for c in others:
+            combo = current + "+" + c
+            names = _spec(prob, combo)[0]
+            for fi, fold in enumerate(folds):
+                have = dict(fits[c][fi].values)
+                have.update(fits[current][fi].values)
+                x = np.array([have.get(n, PARAMS[n].start) for n in names])
+                tasks.append((fold, combo, fits[current][fi], None, [x]))
+        done = run_all(tasks)
+        best = None
+        for k, c in enumerate(others):
+            combo = current + "+" + c
+            fits[combo] = done[k * len(folds):(k + 1) * len(folds)]
+            for fi, f in enumerate(fits[combo]):
+                report(combo, fi, f)
+            evaluate(combo)
+            gain = 1.0 - rmse[combo] / rmse[current] if rmse[current] > 0 else 0.0
+            p = paired_greater(unit_rmse[current], unit_rmse[combo], tie)
+            v["rows"][c].setdefault("on_top", {})[current] = {"gain": gain, "p_value": p}
+            if p < ALPHA and gain >= MIN_GAIN and (best is None or gain > best[1]):
+                best = (c, gain, p)
+        if best is None:
+            break
+        chain.append(best[0])
+        out.append({"cause": best[0], "model": "+".join(chain), "gain": best[1],
+                    "p_value": best[2], "over": current})  # fmt: skip
+    return out
+
+
+def _predictions(prob: Problem, folds: list[Fold], fits: list[FitResult]
+                 ) -> dict[str, Prediction]:  # fmt: skip
+    """Each session predicted by the fold that holds it out (where a session is never held
+    out, by the first fold that trains on it: in-sample)."""
+    out: dict[str, Prediction] = {}
+    for s in prob.sessions:
+        for fi, fold in enumerate(folds):
+            m = fold.test[s.name]
+            if not m.any():
+                continue
+            pr = predict(prob, fits[fi], s, fold.train[s.name])
+            old = out.get(s.name)
+            if old is None:
+                out[s.name] = Prediction(np.where(m, pr.position_mm, np.nan), pr.temp_c, pr.xi)
+            else:
+                old.position_mm[m] = pr.position_mm[m]
+        if s.name not in out:
+            out[s.name] = predict(prob, fits[0], s, folds[0].train[s.name])
+            continue
+        pm = out[s.name].position_mm
+        nan = ~np.isfinite(pm)
+        if nan.any():
+            fi = next((i for i, f in enumerate(folds) if f.train[s.name].any()), 0)
+            pm[nan] = predict(prob, fits[fi], s, folds[fi].train[s.name]).position_mm[nan]
+    return out
+
+
+VI_FLAT = 0.3
+"""phase_resistance is ruled out when the wire's V/I against ξ changes by less than this
+fraction of the resistivity difference its fit needs (the voltage measures R directly)."""
+
+
+def _evidence(prob: Problem, fits: dict, preds: dict) -> dict[str, str]:
+    """Candidates the data rule out by a direct measurement, with the reason: a flat V/I
+    against ξ rules out phase_resistance whatever its fit of the position gains."""
+    out: dict[str, str] = {}
+    if "phase_resistance" in fits and fits["phase_resistance"]:
+        vi = _vi_fit(prob.sessions, preds["phase_resistance"])
+        if vi is not None:
+            beta = float(np.mean([f.values["beta"] for f in fits["phase_resistance"]]))
+            need = beta * vi["rho_mean_uohm_cm"]
+            have = vi["difference_uohm_cm"]
+            if abs(need) > 0 and (abs(have) < VI_FLAT * abs(need) or have * need < 0):
+                out["phase_resistance"] = (
+                    f"ruled out by V/I against ξ: the measured resistivity difference is "
+                    f"{have:.2f} ± {vi['difference_uncertainty_uohm_cm']:.2g} µΩ·cm where the "
+                    f"fit needs {need:.2f} µΩ·cm"
+                )
+    return out
+
+
 # --------------------------------------------------------------------------- parameters
+TEMPERATURE_PARAMS = ("h_mid", "c_mid")
+"""Parameters that are temperatures: flagged when they lie outside the data's range."""
+
+
 def physical_parameters(an: Analysis, model: str) -> dict[str, dict]:
-    """Fitted parameters of ``model`` in physical units: value, standard uncertainty, unit.
+    """Fitted parameters of ``model`` in physical units: value, standard uncertainty, unit,
+    and ``flags`` (at a bound in some fold, uncertainty larger than the value, a temperature
+    outside the data's range).
 
     Over several folds: the mean, and an uncertainty combining the fits' own standard errors
     with the spread between folds."""
@@ -914,72 +1003,154 @@ def physical_parameters(an: Analysis, model: str) -> dict[str, dict]:
 
     for i, n in enumerate(fits[0].names):
         v, u, per = combine([f.x[i] for f in fits], [f.se[i] for f in fits])
-        out[n] = {"value": v, "uncertainty": u, "unit": _UNITS.get(n, ""), "per_fold": per}
+        prm = PARAMS[n]
+        span = prm.hi - prm.lo
+        at = [b for b, lim in (("lower", prm.lo), ("upper", prm.hi))
+              if any(abs(f.x[i] - lim) <= 1e-3 * span for f in fits)]  # fmt: skip
+        out[n] = {"value": v, "uncertainty": u, "unit": prm.unit, "per_fold": per,
+                  "at_bound": at}  # fmt: skip
+    # the cooling centre, derived from the heating centre and the loop's width
+    ih, ik = fits[0].names.index("h_mid"), fits[0].names.index("hyst_k")
+
+    def se_diff(f: FitResult) -> float:
+        c = f.cov[np.ix_([ih, ik], [ih, ik])]
+        var = c[0, 0] + c[1, 1] - 2.0 * c[0, 1]
+        return math.sqrt(var) if math.isfinite(var) and var >= 0 else math.nan
+
+    v, u, per = combine([f.x[ih] - f.x[ik] for f in fits], [se_diff(f) for f in fits])
+    out["c_mid"] = {"value": v, "uncertainty": u, "unit": "°C", "per_fold": per,
+                    "note": "cooling centre = h_mid − hyst_k"}  # fmt: skip
     for n in LINEAR:
         vals = [f.linear.get(n, math.nan) for f in fits]
         out[n] = {"value": float(np.mean(vals)), "uncertainty": float(np.std(vals)) if
-                  len(vals) > 1 else math.nan, "unit": _UNITS[n], "per_fold": vals}  # fmt: skip
-    # derived: the candidate's parameter in the units of the effect
-    sess = an.prob.sessions
-    if model == "stress_shift":
-        s, u = out["ss_k_per_mpa"]["value"], out["ss_k_per_mpa"]["uncertainty"]
-        slope = 1.0 / s if s > 0 else math.inf
-        out["stress_rate_mpa_per_k"] = {
-            "value": slope, "uncertainty": u / s**2 if s > 0 else math.inf, "unit": "MPa/K",
-            "per_fold": [1.0 / v if v > 0 else math.inf for v in out["ss_k_per_mpa"]["per_fold"]],
-        }  # fmt: skip
-    elif model == "phase_resistance":
-        vi = resistance_check(an, model)
-        if vi is not None:
-            rho, how = vi["rho_mean_uohm_cm"] * 1e-8, "ρ_mean from V/I at ξ = 0.5"
-            out["resistance_check"] = vi
-        else:
-            cur = [s for s in sess if s.kind == "current"]
-            rho = float(np.mean([s.resistance_ohm()[0] * s.area_m2 / (s.length_mm * 1e-3)
-                                 for s in cur]))  # fmt: skip
-            how = "nominal ρ_mean (no voltage recorded)"
-        b, u = out["beta"]["value"], out["beta"]["uncertainty"]
-        out["resistivity_difference_uohm_cm"] = {
-            "value": b * rho * 1e8, "uncertainty": u * rho * 1e8, "unit": "µΩ·cm",
-            "note": f"austenite minus martensite: β·ρ_mean from R = R_mean·(1 + β(0.5 - ξ)), {how}",
-        }  # fmt: skip
-    elif model == "latent_heat":
-        v, u = out["lat_k"]["value"], out["lat_k"]["uncertainty"]
-        out["latent_heat_j_kg"] = {
-            "value": v * CP_J_KGK, "uncertainty": u * CP_J_KGK, "unit": "J/kg",
-            "note": f"λ·cp with cp = {CP_J_KGK:g} J/(kg·K)",
-        }
-    elif model == "sensor_lag":
-        il, idl = fits[0].names.index("lag_s"), fits[0].names.index("delay_s")
-
-        def se_sum(f: FitResult) -> float:
-            c = f.cov[np.ix_([il, idl], [il, idl])]
-            if not np.isfinite(c).any():
-                return math.nan
-            return math.sqrt(max(float(np.nansum(c)), 0.0))  # a part at its bound adds none
-
-        v, u, per = combine([f.x[il] + f.x[idl] for f in fits], [se_sum(f) for f in fits])
-        unit = "samples (no t_s column)" if any(s.row_time for s in sess) else "s"
-        out["sensor_delay_s"] = {
-            "value": v, "uncertainty": u, "unit": unit, "per_fold": per,
-            "note": "mean delay of the reading: first-order lag τ plus dead time",
-        }  # fmt: skip
+                  len(vals) > 1 else math.nan, "unit": unit_of(n), "per_fold": vals}  # fmt: skip
+    for c in members(model):
+        _DERIVED.get(c, lambda *_: None)(an, model, out, combine)
     return out
+
+
+def _derive_stress_shift(an: Analysis, model: str, out: dict, combine) -> None:
+    s, u = out["ss_k_per_mpa"]["value"], out["ss_k_per_mpa"]["uncertainty"]
+    out["stress_rate_mpa_per_k"] = {
+        "value": 1.0 / s if s > 0 else math.inf, "uncertainty": u / s**2 if s > 0 else math.inf,
+        "unit": "MPa/K",
+        "per_fold": [1.0 / v if v > 0 else math.inf for v in out["ss_k_per_mpa"]["per_fold"]],
+    }  # fmt: skip
+
+
+def _derive_phase_resistance(an: Analysis, model: str, out: dict, combine) -> None:
+    vi = resistance_check(an, model)
+    if vi is not None:
+        rho, how = vi["rho_mean_uohm_cm"] * 1e-8, "ρ_mean from V/I at ξ = 0.5"
+        out["resistance_check"] = vi
+    else:
+        cur = [s for s in an.prob.sessions if s.kind == "current"]
+        rho = float(np.mean([s.resistance_ohm()[0] * s.area_m2 / (s.length_mm * 1e-3)
+                             for s in cur]))  # fmt: skip
+        how = "nominal ρ_mean (no voltage recorded)"
+    b, u = out["beta"]["value"], out["beta"]["uncertainty"]
+    out["resistivity_difference_uohm_cm"] = {
+        "value": b * rho * 1e8, "uncertainty": u * rho * 1e8, "unit": "µΩ·cm",
+        "note": f"austenite minus martensite: β·ρ_mean from R = R_mean·(1 + β(0.5 - ξ)), {how}",
+    }  # fmt: skip
+
+
+def _derive_latent_heat(an: Analysis, model: str, out: dict, combine) -> None:
+    v, u = out["lat_k"]["value"], out["lat_k"]["uncertainty"]
+    out["latent_heat_j_kg"] = {
+        "value": v * CP_J_KGK, "uncertainty": u * CP_J_KGK, "unit": "J/kg",
+        "note": f"λ·cp with cp = {CP_J_KGK:g} J/(kg·K) (smabench.physics.wire)",
+    }  # fmt: skip
+
+
+def _derive_sensor_lag(an: Analysis, model: str, out: dict, combine) -> None:
+    fits = an.fits[model]
+    il, idl = fits[0].names.index("lag_s"), fits[0].names.index("delay_s")
+
+    def se_sum(f: FitResult) -> float:
+        c = f.cov[np.ix_([il, idl], [il, idl])]
+        if not np.isfinite(c).any():
+            return math.nan
+        return math.sqrt(max(float(np.nansum(c)), 0.0))  # a part at its bound adds none
+
+    v, u, per = combine([f.x[il] + f.x[idl] for f in fits], [se_sum(f) for f in fits])
+    rows = any(s.row_time for s in an.prob.sessions)
+    # no t_s column: time is the row index, so the delay is in samples and named so
+    key = "sensor_delay_samples" if rows else "sensor_delay_s"
+    out[key] = {
+        "value": v, "uncertainty": u, "unit": "samples" if rows else "s", "per_fold": per,
+        "note": "mean delay of the reading: first-order lag τ plus dead time",
+    }  # fmt: skip
+
+
+_DERIVED = {
+    "stress_shift": _derive_stress_shift,
+    "phase_resistance": _derive_phase_resistance,
+    "latent_heat": _derive_latent_heat,
+    "sensor_lag": _derive_sensor_lag,
+}
+"""Candidate → how its headline parameter is derived from the fitted ones (the others report a
+fitted parameter directly: ``Candidate.headline``)."""
+
+
+def headline_key(an: Analysis, cause: str) -> str:
+    """The headline parameter's key for ``cause`` (units in the name)."""
+    key = REGISTRY[cause].headline
+    if key == "sensor_delay_s" and any(s.row_time for s in an.prob.sessions):
+        return "sensor_delay_samples"
+    return key
+
+
+def data_temperature_range(an: Analysis, model: str = "baseline") -> tuple[float, float]:
+    """The temperatures the data cover, °C: measured (thermometer loops) or the model's
+    estimate from the current (2nd to 98th percentile)."""
+    temps = []
+    for s in an.prob.sessions:
+        temps.append(s.temp if s.kind == "thermo" else an.preds[model][s.name].temp_c)
+    t = np.concatenate(temps)
+    return float(np.percentile(t, 2)), float(np.percentile(t, 98))
+
+
+def parameter_flags(an: Analysis, model: str, params: dict[str, dict]) -> list[str]:
+    """Honesty flags of one model's parameters: at a bound, uncertainty larger than the value,
+    a transformation temperature outside the temperatures the data cover."""
+    flags = []
+    lo_t, hi_t = data_temperature_range(an, model)
+    for name, pv in params.items():
+        if "value" not in pv:
+            continue
+        v, u = pv.get("value"), pv.get("uncertainty")
+        if pv.get("at_bound"):
+            flags.append(f"{model}: {name} = {v:.4g} {pv.get('unit', '')} at its "
+                         f"{'/'.join(pv['at_bound'])} bound in some fold (not identified)")
+        if name in ("c_mid",) and params.get("hyst_k", {}).get("at_bound") == ["lower"]:
+            continue
+        if v is not None and u is not None and math.isfinite(u) and abs(u) > abs(v) > 0:
+            flags.append(f"{model}: {name} = {v:.4g} ± {u:.2g}: uncertainty larger than "
+                         "the value")
+        if name in TEMPERATURE_PARAMS and v is not None and not lo_t <= v <= hi_t:
+            flags.append(f"{model}: {name} = {v:.4g} °C outside the data's temperatures "
+                         f"{lo_t:.1f}…{hi_t:.1f} °C")
+    return flags
 
 
 def resistance_check(an: Analysis, model: str = "baseline") -> dict | None:
     """V/I against the model's martensite fraction while the current is on (sessions with the
     wire voltage): R = R_0.5 + ΔR·(0.5 - ξ) by least squares, as resistivities. A direct
     measurement of ``phase_resistance`` that does not go through the heat balance."""
+    return _vi_fit(an.prob.sessions, an.preds[model])
+
+
+def _vi_fit(sessions: list[SessionData], preds: dict[str, Prediction]) -> dict | None:
     xs, ys, geo = [], [], []
-    for s in an.prob.sessions:
+    for s in sessions:
         if s.voltage is None or s.current is None:
             continue
         i = s.current
         on = np.isfinite(s.voltage) & (i > 0.2 * np.max(i)) & (i > 0.02)
         if on.sum() < 20:
             continue
-        xi = an.preds[model][s.name].xi[on]
+        xi = preds[s.name].xi[on]
         xs.append(0.5 - xi)
         ys.append(s.voltage[on] / i[on] * s.area_m2 / (s.length_mm * 1e-3) * 1e8)  # µΩ·cm
         geo.append(s.name)
@@ -1002,61 +1173,11 @@ def resistance_check(an: Analysis, model: str = "baseline") -> dict | None:
     }
 
 
-_UNITS = {
-    "tau_s": "s",
-    "h_mid": "°C",
-    "h_w": "K",
-    "c_mid": "°C",
-    "c_w": "K",
-    "h_shape": "1 (0 cosine … 1 logistic)",
-    "c_shape": "1 (0 cosine … 1 logistic)",
-    "memory": "1 (0 scaled branch … 1 wiping-out)",
-    "tau_heat_s": "s",
-    "tau_cool_s": "s",
-    "shrink_k_per_mpa": "K/MPa",
-    "beta": "1 (ΔR/R_mean)",
-    "lat_k": "K per unit ξ",
-    "ss_k_per_mpa": "K/MPa",
-    "conv_k": "1/K",
-    "lag_s": "s",
-    "delay_s": "s",
-    "drift_k_h": "K/h",
-    "cyc_rate": "strain/cycle",
-    "cyc_nsat": "cycles",
-    "eps_l": "strain",
-    "alpha_per_k": "1/K",
-    "eps_mix": "strain (× ξ(1-ξ))",
-}
+EFFECT_PARAMETER = {c: REGISTRY[c].headline for c in CANDIDATES}
+"""Candidate → its headline parameter in :func:`physical_parameters` (from the registry)."""
 
-EFFECT_PARAMETER = {
-    "phase_resistance": "resistivity_difference_uohm_cm",
-    "latent_heat": "latent_heat_j_kg",
-    "stress_shift": "stress_rate_mpa_per_k",
-    "convection_nonlinear": "conv_k",
-    "sensor_lag": "sensor_delay_s",
-    "ambient_drift": "drift_k_h",
-    "cycle_drift": "cyc_rate",
-}
-"""Candidate → its headline parameter in :func:`physical_parameters`."""
-
-CAUSE_TEXT = {
-    "phase_resistance": "the wire's resistance depends on its phase (austenite and martensite "
-    "resistivities differ), so the heating power I²R changes as it transforms",
-    "latent_heat": "the transformation absorbs heat on heating and releases it on cooling "
-    "(its enthalpy is missing from the heat balance)",
-    "stress_shift": "the transformation temperatures rise with stress (Clausius–Clapeyron): "
-    "the loops of different loads sit at different temperatures",
-    "convection_nonlinear": "heat loss grows faster than linearly with the wire's "
-    "overtemperature (natural convection and radiation)",
-    "sensor_lag": "the displacement reading lags the wire (sensor filter or transport delay)",
-    "ambient_drift": "the room temperature drifts during the session and is not measured",
-    "cycle_drift": "residual strain grows with the number of transformation cycles "
-    "(functional fatigue, training)",
-    "none": "the baseline explains the held-out data to within its accuracy floor",
-    "unexplained": "structure remains that none of the candidate causes removes (or two "
-    "cannot be told apart)",
-}
-"""What each verdict means physically (for reports)."""
+CAUSE_TEXT = {c: cause_text(c) for c in (*CANDIDATES, "none", "unexplained")}
+"""What each verdict means physically (from the registry)."""
 
 __all__ = [
     "COUPLED",

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from smabench.analysis.model import (
+from smabench.analysis.candidates import (
     CP_J_KGK,
     G_M_S2,
     RESISTIVITY_MEAN_OHM_M,
     RHO_KG_M3,
-    Grid,
 )
+from smabench.analysis.model import Grid
 
 DEFAULT_LENGTH_MM = 55.0
 DEFAULT_DIAMETER_MM = 0.38
@@ -70,7 +70,12 @@ class SessionData:
         d = np.diff(self.pos)
         if len(d) < 3:
             return 0.0
-        return float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+        mad = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
+        # quantised readings: most differences are 0 and the MAD says 0; the quantisation
+        # itself is then the floor (uniform rounding error, step/√12)
+        steps = np.abs(d[d != 0])
+        quant = float(np.min(steps)) / math.sqrt(12.0) if len(steps) else 0.0
+        return max(mad, quant)
 
 
 def _finite_column(data: dict, name: str, path: str) -> np.ndarray:
@@ -238,6 +243,9 @@ def prepare_session(
             )
     if load is None and stress is not None:
         load = stress * 1e6 * area / G_M_S2
+    if stress is None:
+        notes.append("load not given: the elastic stroke and any stress question are left "
+                     "out (--load-kg)")
     if np.ptp(pos) <= 0:
         raise AnalysisError(f"{path}: position_mm never changes")
     name = Path(path).name or path

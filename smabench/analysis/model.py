@@ -22,8 +22,9 @@ Candidate extensions (each its own parameters, 0 = off), in SI-like units inside
 - ``sensor_lag``: the position reading lags: a first-order lag τ (s, a filter) followed by a
   dead time d (s, transport and buffering); reported as their sum, the mean delay τ + d.
 - ``ambient_drift``: T_room = recorded ambient + d·t (K/h), unmeasured.
-- ``cycle_drift``: residual strain r·n_sat·(1 - exp(-N/n_sat)), N = transformation cycles
-  counted as Σ|Δξ|/2 (r strain per cycle, n_sat the saturation constant in cycles).
+- ``cycle_drift``: residual strain whose rate per cycle falls as r/(1 + N/n0)^q (linear,
+  logarithmic or saturating: :func:`residual_strain`), N = transformation cycles counted as
+  Σ|Δξ|/2 (r strain per cycle at the first cycle).
 
 Temperature and ξ come from one sequential pass over the grid compiled with numba (the coupled
 effects phase_resistance, latent_heat and convection_nonlinear make the heat balance depend on
@@ -39,31 +40,16 @@ import numba
 import numpy as np
 from scipy.signal import lfilter
 
-RHO_KG_M3 = 6450.0
-CP_J_KGK = 837.0
-RESISTIVITY_MEAN_OHM_M = 90e-8
-E_AUSTENITE_MPA = 75e3
-E_MARTENSITE_MPA = 30e3
-DCOMPLIANCE_PER_MPA = 1.0 / E_MARTENSITE_MPA - 1.0 / E_AUSTENITE_MPA
+from smabench.analysis.candidates import DCOMPLIANCE_PER_MPA
+
 T_REF_C = 22.0
-G_M_S2 = 9.80665
 _EPS_T = 1e-9
 LOGISTIC_K = 2.0 * math.pi
 """Logistic branch steepness per unit window: the same slope at the centre as the cosine."""
+LN2 = math.log(2.0)
 
 LINEAR = ("eps_l", "alpha_per_k", "eps_mix")
 """Coefficients of the basis columns, solved by linear least squares inside every fit."""
-
-CANDIDATES = (
-    "phase_resistance",
-    "latent_heat",
-    "stress_shift",
-    "convection_nonlinear",
-    "sensor_lag",
-    "ambient_drift",
-    "cycle_drift",
-)
-COUPLED = frozenset({"phase_resistance", "latent_heat", "convection_nonlinear"})
 
 
 @dataclass
@@ -128,8 +114,11 @@ class Temps:
         ds = stress_mpa - p.get("sigma_ref", stress_mpa)
         shift = p.get("ss_k_per_mpa", 0.0) * ds
         half_shrink = 0.5 * p.get("shrink_k_per_mpa", 0.0) * ds
+        gap = p["hyst_k"] if "hyst_k" in p else p["h_mid"] - p["c_mid"]
+        # the loop's direction: heating centre above the cooling one, whatever the stress
+        half_shrink = min(half_shrink, 0.45 * gap) if gap > 0 else 0.0
         hm = p["h_mid"] - half_shrink + shift
-        cm = p["c_mid"] + half_shrink + shift
+        cm = p["h_mid"] - gap + half_shrink + shift
         self.as_c, self.af_c = hm - 0.5 * p["h_w"], hm + 0.5 * p["h_w"]
         self.mf_c, self.ms_c = cm - 0.5 * p["c_w"], cm + 0.5 * p["c_w"]
         self.h_shape = p.get("h_shape", 0.0)
@@ -173,6 +162,7 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         p.get("beta", 0.0), p.get("lat_k", 0.0), p.get("conv_k", 0.0),
         *_foh(g.dt, tau_h), *_foh(g.dt, tau_c),
         tt.as_c, tt.af_c, tt.h_shape, tt.mf_c, tt.ms_c, tt.c_shape, p.get("memory", 0.0),
+        p.get("kin_sqrt", 0.0) / math.sqrt(g.dt),
     )  # fmt: skip
 
 
@@ -181,10 +171,15 @@ _NONE = np.zeros(0)
 
 @numba.njit(cache=True, inline="always")
 def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
-    """Major branch falling from 1 to 0 across [lo, hi] (sign +1; sign -1: its complement):
-    ``(1 - shape)·half-cosine + shape·logistic`` of the same centre and mid slope. ``shape``
-    0…1: 0 is the compact Liang–Rogers cosine, 1 a logistic whose tails reach beyond [lo, hi]
-    (the erf-like branches of a Preisach distribution of switching temperatures)."""
+    """Major branch falling from 1 to 0 across [lo, hi] (sign +1, heating; sign -1, cooling:
+    its complement is returned), all of the same centre and mid slope:
+
+    - ``shape`` 0: the compact Liang–Rogers half-cosine;
+    - ``shape`` 0 … 1: blended with a logistic whose tails reach beyond [lo, hi] (the erf-like
+      branches of a Preisach distribution of switching temperatures);
+    - ``shape`` 0 … -1: blended with Tanaka's exponential law, which starts sharply where the
+      transformation starts (low end on heating, high end on cooling) and ends in a long tail.
+    """
     w = max(hi - lo, 1e-6)
     if t <= lo:
         v = 1.0
@@ -192,16 +187,27 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
         v = 0.0
     else:
         v = 0.5 * (1.0 + math.cos(math.pi * (t - lo) / w))
-    if shape != 0.0:
+    if shape > 0.0:
         z = LOGISTIC_K * (t - 0.5 * (lo + hi)) / w
         z = min(max(z, -60.0), 60.0)
         v = (1.0 - shape) * v + shape / (1.0 + math.exp(z))
+    elif shape < 0.0:
+        a = math.pi / w  # the cosine's mid slope is a/2
+        mid = 0.5 * (lo + hi)
+        if sign > 0:  # heating: ξ = exp(-a(T - T0)) above T0 = mid - ln2/a
+            x = a * (t - mid) + LN2
+            e = 1.0 if x <= 0.0 else math.exp(-x)
+        else:  # cooling: 1 - ξ = exp(-a(T1 - T)) below T1 = mid + ln2/a
+            x = a * (mid - t) + LN2
+            e = 0.0 if x <= 0.0 else 1.0 - math.exp(-x)
+        v = (1.0 + shape) * v - shape * e
     return v if sign > 0 else 1.0 - v
 
 
 @numba.njit(cache=True)
 def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
-                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory):  # fmt: skip
+                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory,
+                 kin):  # fmt: skip
     """One pass over the grid (the same discrete equations as the plant's ``Plant.step``).
 
     ``heat_k[n]`` = R·I²/conductance (K) over step n, ``rate`` = dt/τ; the heat input scales
@@ -210,7 +216,9 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
     reversal; ξ lags its equilibrium value by (b, c1, c0) per branch (see :func:`_foh`).
     ``memory`` blends the branch from a reversal (T_r, ξ_r): 0 scales the major branch through
     the reversal point (the paper's moving common point; Liang–Rogers, Brinson), 1 holds ξ_r
-    until the major branch comes back to it (a Preisach model's wiping-out memory)."""
+    until the major branch comes back to it (a Preisach model's wiping-out memory). ``kin``
+    (K per √K, i.e. kin_sqrt/√dt): thermally activated nucleation moves the branch away from
+    the direction of travel by kin_sqrt·√|dT/dt| (heating later, cooling earlier)."""
     n = len(temp_in) if thermo else len(amb)
     temp_out = np.empty(n)
     xi_out = np.empty(n)
@@ -240,20 +248,21 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                 new = t_inf + (temp - t_inf) * a_const
         d = new - temp
         dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
+        sh_k = kin * math.sqrt(abs(d)) if kin != 0.0 else 0.0
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
             if dn > 0:
-                ref = xi_r / max(_branch(temp, as_c, af_c, sh, 1.0), 1e-12)
+                ref = xi_r / max(_branch(temp - sh_k, as_c, af_c, sh, 1.0), 1e-12)
             else:
-                ref = (1.0 - xi_r) / max(_branch(temp, mf_c, ms_c, sc, -1.0), 1e-12)
+                ref = (1.0 - xi_r) / max(_branch(temp + sh_k, mf_c, ms_c, sc, -1.0), 1e-12)
         xi_eq_old = xi_eq
         if dn > 0:
-            major = _branch(new, as_c, af_c, sh, 1.0)
+            major = _branch(new - sh_k, as_c, af_c, sh, 1.0)
             xi_eq = min((1.0 - memory) * ref * major + memory * min(major, xi_r), xi_r)
             xi_new = bh * xi + c1h * xi_eq + c0h * xi_eq_old
         elif dn < 0:
-            major = _branch(new, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
+            major = _branch(new + sh_k, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
             xi_eq = max((1.0 - memory) * (1.0 - ref * major) + memory * max(1.0 - major, xi_r),
                         xi_r)  # fmt: skip
             xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old
@@ -292,8 +301,8 @@ def simulate(g: Grid, p: dict[str, float]) -> Simulated:
     rate = p.get("cyc_rate", 0.0)
     if rate:
         n_cyc = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(xi))) * 0.5))
-        n_sat = p.get("cyc_nsat", 1e3)
-        fixed = fixed + l0 * rate * n_sat * (1.0 - np.exp(-n_cyc / n_sat))
+        fixed = fixed + l0 * residual_strain(n_cyc, rate, p.get("cyc_n0", 1e3),
+                                             p.get("cyc_q", 1.0))  # fmt: skip
     basis = np.column_stack((l0 * xi, l0 * (temp - T_REF_C), l0 * xi * (1.0 - xi)))
     lag = p.get("lag_s", 0.0)
     if lag > 1e-6:
@@ -306,6 +315,16 @@ def simulate(g: Grid, p: dict[str, float]) -> Simulated:
         basis = np.column_stack([dead_time(basis[:, j], g.t, delay) for j in range(basis.shape[1])])
         fixed = dead_time(fixed, g.t, delay)
     return Simulated(temp, xi, basis, fixed)
+
+
+def residual_strain(n_cyc: np.ndarray, rate: float, n0: float, q: float) -> np.ndarray:
+    """Residual strain after ``n_cyc`` transformation cycles when its rate per cycle falls as
+    ``rate/(1 + N/n0)^q``: q = 0 linear, q = 1 logarithmic ``rate·n0·ln(1 + N/n0)``, q > 1
+    saturating; n0 → ∞ linear whatever q. A flexible monotone shape, not one law."""
+    x = n_cyc / n0
+    if abs(q - 1.0) < 1e-6:
+        return rate * n0 * np.log1p(x)
+    return rate * n0 * (np.power(1.0 + x, 1.0 - q) - 1.0) / (1.0 - q)
 
 
 def dead_time(x: np.ndarray, t: np.ndarray, delay_s: float) -> np.ndarray:

@@ -9,14 +9,15 @@ from pathlib import Path
 
 import numpy as np
 
+from smabench.analysis.candidates import cause_text
 from smabench.analysis.core import (
     ALPHA,
     ALPHA_SEPARATION,
-    CAUSE_TEXT,
-    EFFECT_PARAMETER,
     MIN_GAIN,
     TIE_NOISE,
     Analysis,
+    headline_key,
+    parameter_flags,
     physical_parameters,
 )
 
@@ -79,14 +80,16 @@ def summary(an: Analysis) -> dict:
     """The JSON document (keys: cause, runner_up, baseline/extended held-out RMSE, gain, …)."""
     v = an.result
     cause = v["cause"]
-    ext_model = cause if cause in an.fits else v.get("leader")
+    causes = v.get("causes") or []
+    ext_model = causes[-1]["model"] if causes else (
+        cause if cause in an.fits else v.get("leader"))  # fmt: skip
     base = an.rmse["baseline"]
     ext = an.rmse.get(ext_model, base) if ext_model else base
     cands = {}
     for c in an.prob.candidates:
         row = v["rows"][c]
         params = physical_parameters(an, c)
-        key = EFFECT_PARAMETER[c]
+        key = headline_key(an, c)
         cands[c] = {
             "heldout_rmse_mm": an.rmse[c],
             "gain": row["gain"],
@@ -96,16 +99,33 @@ def summary(an: Analysis) -> dict:
             "train_rmse_mm": float(np.mean([f.train_rmse_mm for f in an.fits[c]])),
             "fit_seconds": an.timing.get(c),
         }
+        for k in ("ruled_out", "on_top"):
+            if k in row:
+                cands[c][k] = row[k]
+    ext_params = physical_parameters(an, ext_model) if ext_model else {}
+    base_params = physical_parameters(an, "baseline")
+    flags = parameter_flags(an, "baseline", base_params)
+    if ext_model and ext_model != "baseline":
+        flags += parameter_flags(an, ext_model, ext_params)
+    notes = sorted({n for s in an.prob.sessions for n in s.notes})
     out = {
         "cause": cause,
+        "causes": [
+            {"cause": c["cause"], "incremental_gain": c["gain"], "p_value": c["p_value"],
+             "over": c["over"], "parameter": {headline_key(an, c["cause"]):
+                                              ext_params.get(headline_key(an, c["cause"]))}}
+            for c in causes
+        ],  # fmt: skip
+        "flags": flags,
+        "assumed": notes,
         "runner_up": v["runner_up"],
         "reason": v["reason"],
         "extended_model": ext_model,
         "baseline_heldout_rmse_mm": base,
         "extended_heldout_rmse_mm": ext,
         "gain": 1.0 - ext / base if base > 0 else 0.0,
-        "parameters": physical_parameters(an, ext_model) if ext_model else {},
-        "baseline_parameters": physical_parameters(an, "baseline"),
+        "parameters": ext_params,
+        "baseline_parameters": base_params,
         "candidates": cands,
         "skipped_candidates": an.prob.skipped,
         "test": {
@@ -271,13 +291,25 @@ def write_report(folder: str | Path, an: Analysis, doc: dict) -> Path:
     fig.savefig(folder / "before_after.png", dpi=90)
     plt.close(fig)
     # markdown
-    lines = [
-        "# Discrepancy analysis",
-        "",
+    lines = ["# Discrepancy analysis", ""]
+    if doc.get("assumed"):
+        lines += ["**Assumed (not given; they change the result):** "
+                  + "; ".join(doc["assumed"]) + ".", ""]  # fmt: skip
+    lines += [
         f"**Cause: `{doc['cause']}`**, runner-up: `{doc['runner_up']}`.  ",
-        f"{_sentence(CAUSE_TEXT.get(doc['cause'], ''))}  ",
+        f"{_sentence(cause_text(doc['cause']))}  ",
         f"{doc['reason']}",
         "",
+    ]
+    if len(doc.get("causes", [])) > 1:
+        lines += ["Several causes, each tested on top of the ones before it:", ""]
+        for c in doc["causes"]:
+            lines.append(f"- `{c['cause']}` (over {c['over']}): held-out gain "
+                         f"{c['incremental_gain']:.1%}, p = {c['p_value']:.2g}")
+        lines.append("")
+    if doc.get("flags"):
+        lines += ["**Flags:**", ""] + [f"- {f}" for f in doc["flags"]] + [""]
+    lines += [
         f"Held-out RMSE: baseline {doc['baseline_heldout_rmse_mm']:.4g} mm, extended "
         f"({doc['extended_model']}) {doc['extended_heldout_rmse_mm']:.4g} mm, "
         f"gain = 1 - extended/baseline = {doc['gain']:.1%}.",

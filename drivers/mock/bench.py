@@ -44,6 +44,10 @@ log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[2]
 SIM_BIN = Path(os.environ.get("SMABENCH_SIM", REPO / "firmware/build/sim/smabench-sim"))
 SIM_ELF = Path(os.environ.get("SMABENCH_ELF", REPO / "firmware/build/avr/smabench-cd.elf"))
+# the Arduino bootloader the emulator boots with --bootloader (`make -C firmware optiboot`)
+BOOTLOADER_HEX = Path(
+    os.environ.get("SMABENCH_BOOTLOADER", REPO / "firmware/build/boot/optiboot_atmega328.hex")
+)
 SENSOR_MAP = "generic-rs485-laser"
 SUPPLY_V = 5.0  # the Python firmware model's supply (the simavr harness has its own 12 V)
 FIRMWARES = ("python", "emulated")
@@ -79,17 +83,28 @@ class EmulatedDriver:
     over the AVR time that passed, and sets the wire resistance and ambient (``R``, ``A``).
     """
 
-    def __init__(self, link: PlantLink, couple_s: float = 0.002) -> None:
-        for path in (SIM_BIN, SIM_ELF):
+    def __init__(
+        self,
+        link: PlantLink,
+        couple_s: float = 0.002,
+        bootloader: bool = False,
+        blank: bool = False,
+    ) -> None:
+        """``bootloader``: boot the Arduino bootloader (:data:`BOOTLOADER_HEX`) with the auto-reset
+        of a Nano (every open of the port resets it); ``blank``: no application in the flash."""
+        needed = [SIM_BIN] + ([BOOTLOADER_HEX] if bootloader else []) + ([] if blank else [SIM_ELF])
+        for path in needed:
             if not path.is_file():
                 raise FileNotFoundError(
                     f"{path} missing: build the firmware with `make -C firmware elf sim` in a "
-                    "smabench checkout (or point SMABENCH_SIM and SMABENCH_ELF at the builds)"
+                    "smabench checkout (the bootloader needs `apt-get install arduino-core-avr`; "
+                    "or point SMABENCH_SIM, SMABENCH_ELF, SMABENCH_BOOTLOADER at the builds)"
                 )
         self.link = link
         self.couple_s = couple_s
+        boot = ["--bootloader", str(BOOTLOADER_HEX)] if bootloader else []
         self.proc = subprocess.Popen(
-            [str(SIM_BIN), str(SIM_ELF)],
+            [str(SIM_BIN), *boot, "--blank" if blank else str(SIM_ELF)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
@@ -166,14 +181,22 @@ class MockBench:
         noise_mm: float = 0.002,
         seed: int = 0,
         trace: str | Path | None = None,
+        bootloader: bool = False,
+        blank: bool = False,
     ) -> None:
-        """``trace``: a CSV path for what the plant really got (:class:`PlantTrace`)."""
+        """``trace``: a CSV path for what the plant really got (:class:`PlantTrace`);
+        ``bootloader``, ``blank``: see :class:`EmulatedDriver` (emulated firmware only)."""
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
             raise ValueError(f"speed must be in (0, 100], got {speed}")
         if firmware == "emulated" and speed != 1.0:
             raise ValueError("the emulated firmware runs in real time only (speed 1)")
+        if bootloader and firmware != "emulated":
+            raise ValueError("--bootloader needs the emulated firmware (--firmware emulated)")
+        if blank and not bootloader:
+            raise ValueError("--blank needs --bootloader (a blank chip can only be flashed by one)")
+        self.bootloader, self.blank = bootloader, blank
         self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
         self.speed = speed
         self.firmware = firmware
@@ -220,7 +243,9 @@ class MockBench:
                 self.device = SerialDevice(speed=self.speed, on_step=self._couple).start()
                 driver_port = self.device.port_name
             else:
-                self.emulated = EmulatedDriver(self.link)
+                self.emulated = EmulatedDriver(
+                    self.link, bootloader=self.bootloader, blank=self.blank
+                )
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()
             self.server = SensorServer(

@@ -10,6 +10,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <termios.h>
 #include <unistd.h>
 
 #include "avr_watchdog.h"
@@ -19,6 +20,11 @@
 #define A_MCUSR 0x54    /* ATmega328P data-space address */
 #define BIT_EXTRF 0x02  /* MCUSR: external (reset pin) reset */
 #define A_WDTCSR 0x60
+#define A_UCSR0A 0xC0
+#define BIT_U2X0 0x02
+#define A_UBRR0L 0xC4
+#define A_UBRR0H 0xC5
+#define BAUD_TOLERANCE 0.05 /* a UART frame survives a few per cent of mismatch */
 #define WDT_WDP 0x27    /* WDP3 (bit 5), WDP2..0 */
 #define WDT_ON 0x48     /* WDIE | WDE */
 
@@ -29,6 +35,10 @@ static int port_was_open;
 static unsigned long port_opens;
 static int reset_pending;
 static void (*plain_run)(avr_t *); /* avr->run when nothing (watchdog, us) has swapped it */
+static unsigned long host_baud;    /* what the client set on the port (the slave's termios) */
+static unsigned polls;
+
+static void refresh_host_baud(int pty_master);
 
 static void boot_die(const char *fmt, ...)
 {
@@ -241,6 +251,8 @@ enum boot_port_state boot_port_poll(avr_t *avr, int pty_master)
     struct pollfd pfd = {.fd = pty_master, .events = 0};
     if (reset_pending)
         request_reset(avr);
+    if (++polls % 100 == 0)
+        refresh_host_baud(pty_master);
     if (poll(&pfd, 1, 0) < 0)
         return port_was_open ? BOOT_PORT_OPEN : BOOT_PORT_CLOSED;
     int open = !(pfd.revents & POLLHUP);
@@ -254,8 +266,61 @@ enum boot_port_state boot_port_poll(avr_t *avr, int pty_master)
     while (read(pty_master, junk, sizeof junk) > 0)
         ;
     port_opens++;
+    refresh_host_baud(pty_master);
     fprintf(stderr, "smabench-sim: port opened (%lu): external reset into the bootloader\n",
             port_opens);
     request_reset(avr);
     return BOOT_PORT_OPENED;
+}
+
+/* ------------------------------------------------------------------ baud rate of the line */
+static unsigned long speed_baud(speed_t s)
+{
+    static const struct { speed_t s; unsigned long baud; } table[] = {
+        {B1200, 1200},     {B2400, 2400},     {B4800, 4800},     {B9600, 9600},
+        {B19200, 19200},   {B38400, 38400},   {B57600, 57600},   {B115200, 115200},
+        {B230400, 230400}, {B460800, 460800}, {B500000, 500000}, {B1000000, 1000000},
+    };
+    for (size_t k = 0; k < sizeof table / sizeof table[0]; k++)
+        if (table[k].s == s)
+            return table[k].baud;
+    return 0; /* B0 or unknown: not checked */
+}
+
+/* On a pty master, tcgetattr reads the slave's termios: the speed the client asked for. */
+static void refresh_host_baud(int pty_master)
+{
+    struct termios t;
+    host_baud = tcgetattr(pty_master, &t) == 0 ? speed_baud(cfgetospeed(&t)) : 0;
+}
+
+static unsigned long avr_baud(avr_t *avr)
+{
+    const uint8_t *d = avr->data;
+    unsigned ubrr = d[A_UBRR0L] | ((unsigned)(d[A_UBRR0H] & 0x0f) << 8);
+    return BOOT_F_CPU / ((d[A_UCSR0A] & BIT_U2X0 ? 8ul : 16ul) * (ubrr + 1));
+}
+
+static int baud_mismatch(avr_t *avr)
+{
+    unsigned long avr_b = avr_baud(avr);
+    if (!host_baud || !avr_b)
+        return 0;
+    double ratio = (double)host_baud / (double)avr_b;
+    return ratio < 1.0 - BAUD_TOLERANCE || ratio > 1.0 + BAUD_TOLERANCE;
+}
+
+int boot_line_rx(avr_t *avr, int pty_master, uint8_t *buf, size_t n)
+{
+    refresh_host_baud(pty_master);
+    if (!baud_mismatch(avr))
+        return 0;
+    for (size_t k = 0; k < n; k++)
+        buf[k] = (uint8_t)~buf[k];
+    return 1;
+}
+
+uint8_t boot_line_tx(avr_t *avr, uint8_t byte)
+{
+    return baud_mismatch(avr) ? (uint8_t)~byte : byte;
 }

@@ -10,6 +10,9 @@
 #ifndef SMABENCH_SIM_BOOT_H
 #define SMABENCH_SIM_BOOT_H
 
+#include <stddef.h>
+#include <stdint.h>
+
 #include "sim_avr.h"
 
 /* Harness options --bootloader HEX and --blank. Returns how many argv entries starting at
@@ -40,5 +43,13 @@ enum boot_port_state {
 
 /* Once per slice, between avr_run calls: watch the port (a poll for POLLHUP on the master). */
 enum boot_port_state boot_port_poll(avr_t *avr, int pty_master);
+
+/* The line's baud rate: the speed the client set on the port (the slave's termios, read on the
+ * master) against UART0's (UBRR0, U2X0). Off by more than 5 %, every byte arrives corrupted (its
+ * complement), as on a real line at the wrong speed; so avrdude at 115200 cannot talk to the old
+ * 57600 bootloader. boot_line_rx: bytes from the pty (in place; 1 if corrupted); boot_line_tx: one
+ * byte from UART0. */
+int boot_line_rx(avr_t *avr, int pty_master, uint8_t *buf, size_t n);
+uint8_t boot_line_tx(avr_t *avr, uint8_t byte);
 
 #endif

@@ -180,7 +180,7 @@ static void uart_out_cb(avr_irq_t *irq, uint32_t value, void *param)
     (void)irq;
     (void)param;
     if (txq_len < sizeof txq)
-        txq[txq_len++] = (uint8_t)value;
+        txq[txq_len++] = boot_enabled() ? boot_line_tx(avr, (uint8_t)value) : (uint8_t)value;
     else
         tx_dropped++;
     tx_bytes++;
@@ -244,6 +244,8 @@ static void pty_read(void)
     if (room > sizeof buf)
         room = sizeof buf;
     ssize_t n = read(pty_master, buf, room);
+    if (n > 0 && boot_enabled())
+        boot_line_rx(avr, pty_master, buf, (size_t)n); /* wrong baud rate: corrupted */
     for (ssize_t k = 0; k < n; k++) {
         rxq[rxq_head] = buf[k];
         rxq_head = (rxq_head + 1) % sizeof rxq;

@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 
 # Debian packages: firmware toolchain + emulator, fuzzing, pty helpers, Qt offscreen + Xvfb.
 APT_PACKAGES := gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev pkg-config \
-                clang libclang-rt-14-dev socat \
+                clang libclang-rt-14-dev socat avrdude arduino-core-avr \
                 libegl1 libgl1 libx11-6 libdbus-1-3 libfontconfig1 libfreetype6 libglib2.0-0 \
                 libxkbcommon0 xvfb xauth libxcb-cursor0 libxcb-icccm4 libxcb-image0 \
                 libxcb-keysyms1 libxcb-render-util0 libxcb-render0 libxcb-shape0 libxcb-util1 \

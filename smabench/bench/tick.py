@@ -13,7 +13,8 @@ tick, in this order:
 3. the driver telemetry: none, or older than ``link_timeout_s``, ends the session (after a
    start-up grace of ``link_timeout_s``); a device fault ends it;
 4. the temperature estimate (:class:`~smabench.physics.thermal.TemperatureEstimator`) from the
-   telemetry's current, wire voltage (so the measured resistance V/I) and ambient;
+   telemetry's current, wire voltage (so the measured resistance V/I) and ambient (the first
+   frame's ambient is also the wire's starting temperature);
 5. the command source: a controller (:class:`~smabench.commands.ObservingCommandSource`) first
    observes the estimate, ambient, measured resistance and position; then ``update``;
 6. the interlocks on the result: commanded current, estimated temperature, position limits and
@@ -133,6 +134,7 @@ class ControlTick:
         self._last_clock_s: float | None = None
         self._last_good_clock_s = 0.0
         self._last_valid: tuple[float, float] | None = None  # (t_s, position_mm)
+        self._ambient_known = False
         self.ticks = 0
 
     def _end(self, status: str, reason: str, row: dict | None = None) -> TickResult:
@@ -194,6 +196,11 @@ class ControlTick:
         current_a = telemetry.current_a if telemetry is not None else math.nan
         voltage_v = telemetry.voltage_v if telemetry is not None else None
         ambient_c = telemetry.ambient_c if telemetry is not None else cfg.ambient_c
+        if telemetry is not None and not self._ambient_known:
+            # the session starts with the wire at rest: at the room's measured temperature
+            self._ambient_known = True
+            if math.isfinite(ambient_c):
+                self.estimator.reset(ambient_c)
         temperature_c = self.estimator.update(
             dt_s, current_a if math.isfinite(current_a) else 0.0, voltage_v, ambient_c
         )

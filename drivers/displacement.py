@@ -19,6 +19,8 @@ record the sample and carry on. After a lost link the next read reconnects.
 from __future__ import annotations
 
 import contextlib
+import functools
+import json
 import logging
 import math
 import re
@@ -30,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 SENSORS_DIR = Path(__file__).resolve().parent / "sensors"
+log = logging.getLogger(__name__)
 
 # pymodbus logs every timeout at ERROR level with a packet dump; this driver reports link problems
 # itself (typed errors, sample flags). A NullHandler keeps those messages off stderr when the
@@ -84,8 +87,9 @@ FLAG_TIMEOUT = SensorTimeout.flag
 FLAG_EXCEPTION = SensorException.flag
 FLAG_LINK_LOST = SensorLinkLost.flag
 FLAG_FRAMING = SensorFrameError.flag
-FLAG_SENSOR_STATUS = 0x10  # the sensor's status word has an error bit set (see ``error_mask``)
+FLAG_SENSOR_STATUS = 0x10  # the sensor's status says error (``error_mask`` / ``error_values``)
 FLAG_RETRIED = 0x20  # the read succeeded, but only after a retry
+FLAG_OUT_OF_RANGE = 0x40  # the position is a sentinel, NaN, or outside the map's ``valid_range``
 
 FLAG_NAMES = {
     FLAG_TIMEOUT: "timeout",
@@ -94,9 +98,14 @@ FLAG_NAMES = {
     FLAG_FRAMING: "framing",
     FLAG_SENSOR_STATUS: "sensor_status",
     FLAG_RETRIED: "retried",
+    FLAG_OUT_OF_RANGE: "out_of_range",
 }
-#: flags meaning "no valid position in this sample"
-FLAGS_INVALID = FLAG_TIMEOUT | FLAG_EXCEPTION | FLAG_LINK_LOST | FLAG_FRAMING
+#: flags meaning "no valid position in this sample" (``position_mm`` is NaN: never fed to the
+#: controller)
+FLAGS_INVALID = (
+    FLAG_TIMEOUT | FLAG_EXCEPTION | FLAG_LINK_LOST | FLAG_FRAMING | FLAG_SENSOR_STATUS
+    | FLAG_OUT_OF_RANGE
+)
 
 EXCEPTION_NAMES = {
     1: "illegal function",
@@ -132,19 +141,30 @@ DATA_TYPES: dict[str, tuple[int, str]] = {
     "uint32": (2, ">I"),
     "float32": (2, ">f"),
 }
-WORD_ORDERS = ("big", "little")
+ORDERS = ("big", "little")
+WORD_ORDERS = ORDERS
 
 
-def encode_registers(raw: int | float, dtype: str, word_order: str = "big") -> list[int]:
+def _check_order(order: str, what: str) -> None:
+    if order not in ORDERS:
+        raise ValueError(f"{what} {order!r} is not one of {', '.join(ORDERS)}")
+
+
+def _swap(reg: int) -> int:
+    return ((reg & 0xFF) << 8) | ((reg >> 8) & 0xFF)
+
+
+def encode_registers(raw: int | float, dtype: str, word_order: str = "big",
+                     byte_order: str = "big") -> list[int]:
     """Encode one raw (device-unit) value into 16-bit registers.
 
-    Bytes inside a register are always big-endian (Modbus); ``word_order`` says whether the
-    most significant register comes first (``big``) or last (``little``). Integers are rounded
-    and must fit the type (``ValueError`` otherwise).
+    ``word_order``: whether the most significant register comes first (``big``) or last
+    (``little``); ``byte_order``: bytes inside each register as Modbus sends them (``big``) or
+    swapped (``little``). Integers are rounded and must fit the type (``ValueError`` otherwise).
     """
     n_regs, fmt = _dtype(dtype)
-    if word_order not in WORD_ORDERS:
-        raise ValueError(f"word order {word_order!r} is not one of {', '.join(WORD_ORDERS)}")
+    _check_order(word_order, "word order")
+    _check_order(byte_order, "byte order")
     value: int | float = float(raw) if dtype == "float32" else int(round(raw))
     try:
         data = struct.pack(fmt, value)
@@ -153,18 +173,25 @@ def encode_registers(raw: int | float, dtype: str, word_order: str = "big") -> l
     regs = [int.from_bytes(data[i : i + 2], "big") for i in range(0, 2 * n_regs, 2)]
     if word_order == "little":
         regs.reverse()
+    if byte_order == "little":
+        regs = [_swap(r) for r in regs]
     return regs
 
 
-def decode_registers(regs: list[int] | tuple[int, ...], dtype: str, word_order: str = "big"):
+def decode_registers(regs: list[int] | tuple[int, ...], dtype: str, word_order: str = "big",
+                     byte_order: str = "big"):
     """Decode 16-bit registers into one raw value (inverse of :func:`encode_registers`)."""
     n_regs, fmt = _dtype(dtype)
     if len(regs) != n_regs:
         raise ValueError(f"{dtype} needs {n_regs} register(s), got {len(regs)}")
-    if word_order not in WORD_ORDERS:
-        raise ValueError(f"word order {word_order!r} is not one of {', '.join(WORD_ORDERS)}")
-    ordered = list(regs) if word_order == "big" else list(reversed(regs))
-    data = b"".join(int(r & 0xFFFF).to_bytes(2, "big") for r in ordered)
+    _check_order(word_order, "word order")
+    _check_order(byte_order, "byte order")
+    ordered = [int(r) & 0xFFFF for r in regs]
+    if byte_order == "little":
+        ordered = [_swap(r) for r in ordered]
+    if word_order == "little":
+        ordered.reverse()
+    data = b"".join(r.to_bytes(2, "big") for r in ordered)
     return struct.unpack(fmt, data)[0]
 
 
@@ -182,15 +209,17 @@ def _dtype(dtype: str) -> tuple[int, str]:
 # --------------------------------------------------------------------------------------------
 
 QUANTITIES = {"position": "mm", "temperature": "degC", "status": ""}
-_ENTRY_KEYS = {"address", "type", "word_order", "scale", "offset", "units", "error_mask",
-               "description"}
-_SENSOR_KEYS = {"name", "description", "unit_id", "function"}
-_LINE_KEYS = {"baudrate", "parity", "stopbits", "bytesize", "timeout_s", "retries"}
+SCHEMA_PATH = SENSORS_DIR / "map.schema.json"
 
 
 @dataclass(frozen=True)
 class Quantity:
-    """One measured quantity: ``physical = raw * scale + offset`` (in ``units``)."""
+    """One measured quantity: ``physical = raw * scale + offset`` (in ``units``).
+
+    A raw value that is NaN/infinite, one of ``sentinels`` or outside ``valid_range`` means
+    "no measurement" (:meth:`invalid_reason`); a status word is an error when it has an
+    ``error_mask`` bit set or is one of ``error_values``.
+    """
 
     name: str
     address: int
@@ -201,13 +230,21 @@ class Quantity:
     units: str = ""
     error_mask: int = 0
     description: str = ""
+    byte_order: str = "big"
+    valid_range: tuple[float, float] | None = None
+    sentinels: tuple[float, ...] = ()
+    error_values: tuple[int, ...] = ()
 
     @property
     def count(self) -> int:
         return DATA_TYPES[self.dtype][0]
 
+    def raw(self, regs: list[int]) -> float | int:
+        """The raw (device-unit) value of the registers."""
+        return decode_registers(regs, self.dtype, self.word_order, self.byte_order)
+
     def decode(self, regs: list[int]) -> float | int:
-        raw = decode_registers(regs, self.dtype, self.word_order)
+        raw = self.raw(regs)
         if self.name == "status":
             return int(raw)
         return raw * self.scale + self.offset
@@ -215,8 +252,49 @@ class Quantity:
     def encode(self, value: float) -> list[int]:
         """Registers a device would serve for the physical ``value``."""
         if self.name == "status":
-            return encode_registers(int(value), self.dtype, self.word_order)
-        return encode_registers((value - self.offset) / self.scale, self.dtype, self.word_order)
+            return self.encode_raw(int(value))
+        return self.encode_raw((value - self.offset) / self.scale)
+
+    def encode_raw(self, raw: float) -> list[int]:
+        """Registers a device would serve for the raw (device-unit) value."""
+        return encode_registers(raw, self.dtype, self.word_order, self.byte_order)
+
+    def invalid_reason(self, raw: float | int) -> str:
+        """Why a raw position/temperature is no measurement ('' when it is one)."""
+        if not math.isfinite(raw):
+            return f"raw value {raw} (no measurement)"
+        if raw in self.sentinels:
+            return f"raw value {raw:g} is the sensor's 'no measurement' code"
+        if self.valid_range is not None and not self.valid_range[0] <= raw <= self.valid_range[1]:
+            lo, hi = self.valid_range
+            return f"raw value {raw:g} outside the valid range {lo:g} … {hi:g}"
+        return ""
+
+    def status_error(self, word: int) -> bool:
+        return bool(word & self.error_mask) or word in self.error_values
+
+    @property
+    def invalid_raw(self) -> float:
+        """A raw value that :meth:`invalid_reason` rejects (for simulators and tests)."""
+        if self.sentinels:
+            return self.sentinels[0]
+        if self.dtype == "float32":
+            return math.nan
+        if self.valid_range is not None:
+            lo, hi = self.valid_range
+            top = {"int16": 0x7FFF, "uint16": 0xFFFF, "int32": 0x7FFFFFFF,
+                   "uint32": 0xFFFFFFFF}[self.dtype]
+            return hi + 1 if hi < top else lo - 1
+        raise ValueError(f"[registers.{self.name}] has no invalid value (no sentinels/range)")
+
+    @property
+    def error_word(self) -> int:
+        """A status word :meth:`status_error` flags (for simulators and tests)."""
+        if self.error_values:
+            return self.error_values[0]
+        if self.error_mask:
+            return self.error_mask & -self.error_mask  # its lowest bit
+        raise ValueError("[registers.status] has neither error_mask nor error_values")
 
 
 @dataclass(frozen=True)
@@ -232,6 +310,25 @@ class LineSettings:
 
 
 @dataclass(frozen=True)
+class RegisterWrite:
+    """Holding registers written on every connect (function 6 for one, 16 for several)."""
+
+    address: int
+    values: tuple[int, ...]
+    description: str
+
+
+@dataclass(frozen=True)
+class RegisterCheck:
+    """A register read on connect that must hold ``expect`` (else the map is wrong for it)."""
+
+    address: int
+    function: int
+    expect: int
+    description: str
+
+
+@dataclass(frozen=True)
 class SensorMap:
     """A parsed, validated register map."""
 
@@ -242,18 +339,29 @@ class SensorMap:
     line: LineSettings = field(default_factory=LineSettings)
     source: str = "<memory>"
     description: str = ""
+    document: str = ""
+    section: str = ""
+    example: bool = False
+    read_blocks: tuple[tuple[int, int], ...] = ()
+    on_connect: tuple[RegisterWrite, ...] = ()
+    checks: tuple[RegisterCheck, ...] = ()
 
     @property
     def position(self) -> Quantity:
         return self.quantities["position"]
 
     def blocks(self) -> list[tuple[int, int, list[Quantity]]]:
-        """Contiguous register runs ``(start, count, quantities)``: one request each."""
+        """The read requests ``(start, count, quantities)``: the map's ``[[block]]`` list, or
+        else one request per contiguous run of quantities."""
+        qs = sorted(self.quantities.values(), key=lambda q: q.address)
+        if self.read_blocks:
+            return [(a, n, [q for q in qs if a <= q.address < a + n])
+                    for a, n in self.read_blocks]
         out: list[tuple[int, int, list[Quantity]]] = []
-        for q in sorted(self.quantities.values(), key=lambda q: q.address):
+        for q in qs:
             if out and out[-1][0] + out[-1][1] == q.address and out[-1][1] + q.count <= 125:
-                start, count, qs = out[-1]
-                out[-1] = (start, count + q.count, [*qs, q])
+                start, count, block = out[-1]
+                out[-1] = (start, count + q.count, [*block, q])
             else:
                 out.append((q.address, q.count, [q]))
         return out
@@ -262,6 +370,11 @@ class SensorMap:
         """``{address: register}`` a device serves for quantity ``name`` at ``value``."""
         q = self.quantities[name]
         return {q.address + i: r for i, r in enumerate(q.encode(value))}
+
+    def encode_raw(self, name: str, raw: float) -> dict[int, int]:
+        """``{address: register}`` for a raw (device-unit) value of quantity ``name``."""
+        q = self.quantities[name]
+        return {q.address + i: r for i, r in enumerate(q.encode_raw(raw))}
 
 
 def available_maps() -> list[str]:
@@ -286,132 +399,131 @@ def load_map(name_or_path: str | Path) -> SensorMap:
     return parse_map(data, source=str(path), default_name=path.stem)
 
 
+@functools.cache
+def _validator():
+    import jsonschema
+
+    schema = json.loads(SCHEMA_PATH.read_text(encoding="utf-8"))
+    cls = jsonschema.validators.validator_for(schema)
+    cls.check_schema(schema)
+    return cls(schema)
+
+
+def _where(path: list) -> str:
+    """``[registers.position].type`` from a JSON path (as the TOML file spells it)."""
+    tables = [str(p) for p in path if not isinstance(p, int)]
+    index = next((p for p in path if isinstance(p, int)), None)
+    if not tables:
+        return "(top level)"
+    if tables[0] in ("block", "on_connect", "check"):
+        head = f"[[{tables[0]}]]" + (f" #{index + 1}" if index is not None else "")
+        return head + "".join(f".{t}" for t in tables[1:])
+    n_table = 2 if tables[0] == "registers" and len(tables) > 1 else 1
+    head = "[" + ".".join(tables[:n_table]) + "]"
+    return head + "".join(f".{t}" for t in tables[n_table:])
+
+
+def _schema_message(error) -> tuple[list, str]:
+    """(path, words) of a jsonschema error, in the map's terms."""
+    path, v, inst, sch = list(error.absolute_path), error.validator, error.instance, error.schema
+    if v == "required":
+        missing = error.message.split("'")[1]
+        return [*path, missing], "missing (required)"
+    if v in ("additionalProperties", "unevaluatedProperties"):
+        allowed = sorted(sch.get("properties", {}))
+        extra = [k for k in inst if k not in allowed] if isinstance(inst, dict) else []
+        where = [*path, extra[0]] if extra else path
+        what = "unknown quantity" if path == ["registers"] else "unknown key"
+        return where, f"{what}" + (f" (allowed: {', '.join(allowed)})" if allowed else "")
+    if v == "enum":
+        choices = ", ".join(repr(c) for c in error.validator_value)
+        label = "unknown data type" if path and path[-1] == "type" else "bad value"
+        return path, f"{label} {inst!r} (expected one of {choices})"
+    if v == "const":
+        return path, f"must be {error.validator_value!r}, got {inst!r}"
+    if v == "type":
+        return path, f"must be of type {error.validator_value}, got {inst!r}"
+    if v in ("minimum", "maximum", "exclusiveMinimum", "exclusiveMaximum"):
+        lo = sch.get("minimum", sch.get("exclusiveMinimum", "-inf"))
+        hi = sch.get("maximum", sch.get("exclusiveMaximum", "inf"))
+        return path, f"must be in {lo}..{hi}, got {inst!r}"
+    if v == "not":
+        return path, f"must not be {inst!r}"
+    return path, error.message
+
+
 def parse_map(data: dict[str, Any], *, source: str = "<memory>",
               default_name: str = "sensor") -> SensorMap:
-    """Validate a map already parsed from TOML; errors name ``source`` and the offending key."""
+    """Validate a map already parsed from TOML against the declared schema
+    (``drivers/sensors/map.schema.json``) plus the register layout (overlaps, blocks);
+    errors name ``source`` and the offending key."""
+    import jsonschema
 
-    def fail(key: str, msg: str) -> SensorMapError:
-        return SensorMapError(f"{source}: {key}: {msg}")
-
-    def check_keys(table: dict, allowed: set[str], where: str) -> None:
-        for key in table:
-            if key not in allowed:
-                raise fail(f"{where}.{key}",
-                           f"unknown key (allowed: {', '.join(sorted(allowed))})")
-
-    def get_int(table: dict, key: str, where: str, lo: int, hi: int,
-                default: int | None = None) -> int:
-        if key not in table:
-            if default is None:
-                raise fail(f"{where}.{key}", "missing (required)")
-            return default
-        value = table[key]
-        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-            raise fail(f"{where}.{key}", f"must be an integer in {lo}..{hi}, got {value!r}")
-        return value
-
-    def get_float(table: dict, key: str, where: str, default: float) -> float:
-        value = table.get(key, default)
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(
-            value
-        ):
-            raise fail(f"{where}.{key}", f"must be a finite number, got {value!r}")
-        return float(value)
-
-    def get_str(table: dict, key: str, where: str, default: str) -> str:
-        value = table.get(key, default)
-        if not isinstance(value, str):
-            raise fail(f"{where}.{key}", f"must be a string, got {value!r}")
-        return value
+    def fail(where: str, msg: str) -> SensorMapError:
+        return SensorMapError(f"{source}: {where}: {msg}")
 
     if not isinstance(data, dict):
         raise SensorMapError(f"{source}: expected a TOML table")
-    check_keys(data, {"sensor", "line", "registers"}, "(top level)")
-    for table_name in ("sensor", "line", "registers"):
-        if table_name in data and not isinstance(data[table_name], dict):
-            raise fail(f"[{table_name}]", "must be a table")
+    bad_number = _first_non_finite(data, [])
+    if bad_number is not None:
+        raise fail(_where(bad_number[0]), f"must be a finite number, got {bad_number[1]!r}")
+    error = jsonschema.exceptions.best_match(_validator().iter_errors(data))
+    if error is not None:
+        path, words = _schema_message(error)
+        raise fail(_where(path), words)
 
-    sensor = data.get("sensor", {})
-    check_keys(sensor, _SENSOR_KEYS, "[sensor]")
-    name = get_str(sensor, "name", "[sensor]", default_name)
-    description = get_str(sensor, "description", "[sensor]", "")
-    unit_id = get_int(sensor, "unit_id", "[sensor]", 0, 247, default=1)
-    function = get_int(sensor, "function", "[sensor]", 0, 255, default=3)
-    if function not in (3, 4):
-        raise fail("[sensor].function",
-                   f"must be 3 (holding registers) or 4 (input registers), got {function}")
-
-    line_t = data.get("line", {})
-    check_keys(line_t, _LINE_KEYS, "[line]")
-    parity = get_str(line_t, "parity", "[line]", "N").upper()
-    if parity not in ("N", "E", "O"):
-        raise fail("[line].parity", f"must be 'N', 'E' or 'O', got {parity!r}")
-    stopbits = get_int(line_t, "stopbits", "[line]", 1, 2, default=1)
-    bytesize = get_int(line_t, "bytesize", "[line]", 7, 8, default=8)
-    timeout_s = get_float(line_t, "timeout_s", "[line]", 0.1)
-    if not 0 < timeout_s <= 10:
-        raise fail("[line].timeout_s", f"must be in (0, 10] s, got {timeout_s}")
-    line = LineSettings(
-        baudrate=get_int(line_t, "baudrate", "[line]", 300, 4_000_000, default=19200),
-        parity=parity, stopbits=stopbits, bytesize=bytesize, timeout_s=timeout_s,
-        retries=get_int(line_t, "retries", "[line]", 0, 5, default=1),
-    )
-
-    regs_t = data.get("registers")
-    if regs_t is None:
-        raise fail("[registers]", "missing (required, with at least [registers.position])")
+    sensor, line_t = data.get("sensor", {}), data.get("line", {})
+    line = LineSettings(**{k: line_t[k] for k in line_t})
     quantities: dict[str, Quantity] = {}
-    for qname, entry in regs_t.items():
-        where = f"[registers.{qname}]"
-        if qname not in QUANTITIES:
-            raise fail(where, f"unknown quantity (allowed: {', '.join(QUANTITIES)})")
-        if not isinstance(entry, dict):
-            raise fail(where, "must be a table")
-        check_keys(entry, _ENTRY_KEYS, where)
-        if "type" not in entry:
-            raise fail(f"{where}.type", f"missing (required; one of {', '.join(DATA_TYPES)})")
-        dtype = entry["type"]
-        if dtype not in DATA_TYPES:
-            raise fail(f"{where}.type",
-                       f"unknown data type {dtype!r} (expected one of {', '.join(DATA_TYPES)})")
-        word_order = entry.get("word_order", "big")
-        if word_order not in WORD_ORDERS:
-            raise fail(f"{where}.word_order",
-                       f"bad word order {word_order!r} (expected 'big' or 'little')")
-        n_regs = DATA_TYPES[dtype][0]
-        address = get_int(entry, "address", where, 0, 65536 - n_regs)
-        scale = get_float(entry, "scale", where, 1.0)
-        if scale == 0:
-            raise fail(f"{where}.scale", "must not be 0")
-        units = get_str(entry, "units", where, QUANTITIES[qname])
-        if qname == "position" and units != "mm":
-            raise fail(f"{where}.units",
-                       f"position must be scaled to 'mm' (set scale), got {units!r}")
-        if qname == "status":
-            if dtype not in ("uint16", "int16", "uint32"):
-                raise fail(f"{where}.type", f"status must be an integer word, got {dtype!r}")
-            if "scale" in entry or "offset" in entry:
-                raise fail(where, "status takes no scale/offset (it is a bit field)")
-        elif "error_mask" in entry:
-            raise fail(f"{where}.error_mask", "only [registers.status] takes error_mask")
+    for qname, e in data["registers"].items():
+        vr = e.get("valid_range")
+        if vr is not None and vr[0] > vr[1]:
+            raise fail(f"[registers.{qname}].valid_range", f"low end above high end: {vr}")
         quantities[qname] = Quantity(
-            name=qname, address=address, dtype=dtype, word_order=word_order, scale=scale,
-            offset=get_float(entry, "offset", where, 0.0), units=units,
-            error_mask=get_int(entry, "error_mask", where, 0, 0xFFFFFFFF, default=0),
-            description=get_str(entry, "description", where, ""),
+            name=qname, address=e["address"], dtype=e["type"],
+            word_order=e.get("word_order", "big"), byte_order=e.get("byte_order", "big"),
+            scale=float(e.get("scale", 1.0)), offset=float(e.get("offset", 0.0)),
+            units=e.get("units", QUANTITIES[qname]), error_mask=e.get("error_mask", 0),
+            description=e.get("description", ""),
+            valid_range=None if vr is None else (float(vr[0]), float(vr[1])),
+            sentinels=tuple(e.get("sentinels", ())), error_values=tuple(e.get("error_values", ())),
         )
-    if "position" not in quantities:
-        raise fail("[registers.position]", "missing (every map needs a position entry)")
-
     used: dict[int, str] = {}
     for q in quantities.values():
+        if q.address + q.count > 65536:
+            raise fail(f"[registers.{q.name}].address", "runs past register 65535")
         for a in range(q.address, q.address + q.count):
             if a in used:
                 raise fail(f"[registers.{q.name}].address",
                            f"register {a} overlaps [registers.{used[a]}]")
             used[a] = q.name
-    return SensorMap(name=name, unit_id=unit_id, function=function, quantities=quantities,
-                     line=line, source=source, description=description)
+    blocks = tuple((b["address"], b["count"]) for b in data.get("block", ()))
+    for q in quantities.values() if blocks else ():
+        if not any(a <= q.address and q.address + q.count <= a + n for a, n in blocks):
+            raise fail(f"[registers.{q.name}].address", "not inside any [[block]]")
+    return SensorMap(
+        name=sensor.get("name", default_name), unit_id=sensor.get("unit_id", 1),
+        function=sensor.get("function", 3), quantities=quantities, line=line, source=source,
+        description=sensor.get("description", ""), document=sensor.get("document", ""),
+        section=sensor.get("section", ""), example=sensor.get("example", False),
+        read_blocks=blocks,
+        on_connect=tuple(RegisterWrite(w["address"], tuple(w["values"]), w["description"])
+                         for w in data.get("on_connect", ())),
+        checks=tuple(RegisterCheck(c["address"], c.get("function", 3), c["expect"],
+                                   c["description"]) for c in data.get("check", ())),
+    )
+
+
+def _first_non_finite(node: Any, path: list) -> tuple[list, float] | None:
+    if isinstance(node, float) and not math.isfinite(node):
+        return path, node
+    items = node.items() if isinstance(node, dict) else enumerate(node) \
+        if isinstance(node, list) else ()
+    for key, value in items:
+        found = _first_non_finite(value, [*path, key])
+        if found is not None:
+            return found
+    return None
 
 
 # --------------------------------------------------------------------------------------------
@@ -510,7 +622,8 @@ class Sample:
 
     @property
     def ok(self) -> bool:
-        """True when ``position_mm`` is a real measurement (no link-problem flag)."""
+        """True when ``position_mm`` is a real measurement: no link problem, no status error,
+        no out-of-range code (an invalid sample's ``position_mm`` is NaN)."""
         return not self.flags & FLAGS_INVALID
 
 
@@ -549,7 +662,7 @@ class DisplacementSensor:
         self._last_connect_fail = -math.inf
         self._rx_seen = False
         self.stats = {"reads": 0, "ok": 0, "timeouts": 0, "exceptions": 0, "link_lost": 0,
-                      "framing": 0, "retries": 0, "connects": 0}
+                      "framing": 0, "retries": 0, "connects": 0, "invalid": 0}
 
     # -- lifecycle ------------------------------------------------------------------------
 
@@ -568,7 +681,13 @@ class DisplacementSensor:
         return self._client is not None and bool(self._client.connected)
 
     def connect(self) -> None:
-        """Open the link; :class:`SensorLinkLost` if the sensor cannot be reached."""
+        """Open the link, check the map's ``[[check]]`` registers and write its
+        ``[[on_connect]]`` registers (every connect: a power-cycled sensor forgets them).
+
+        :class:`SensorLinkLost` if the sensor cannot be reached; :class:`SensorMapError` when a
+        check register holds another value (the map does not fit this sensor); the Modbus
+        errors of :meth:`read` when a check or write fails on the link.
+        """
         if self.connected:
             return
         self._drop_client()
@@ -586,7 +705,43 @@ class DisplacementSensor:
             detail = f": {err}" if err else ""
             raise SensorLinkLost(f"cannot connect to {self.spec}{detail}")
         self._client = client
+        try:
+            self._setup()
+        except BaseException:
+            self._drop_client()
+            raise
         self.stats["connects"] += 1
+
+    def _setup(self) -> None:
+        for check in self.map.checks:
+            (value,), _ = self._read_block(check.address, 1, check.function)
+            if value != check.expect:
+                raise SensorMapError(
+                    f"{self.spec}: register {check.address} reads {value}, the map "
+                    f"{self.map.source} expects {check.expect} ({check.description}): "
+                    "wrong map for this sensor"
+                )
+        for w in self.map.on_connect:
+            self._write(w.address, list(w.values), w.description)
+            log.info("%s: wrote %s to register %d (%s)", self.spec, list(w.values), w.address,
+                     w.description)
+
+    def _write(self, address: int, values: list[int], what: str) -> None:
+        from pymodbus.exceptions import ModbusException
+
+        try:
+            if len(values) == 1:
+                rr = self._client.write_register(address, values[0], device_id=self.unit_id)
+            else:
+                rr = self._client.write_registers(address, values, device_id=self.unit_id)
+        except (ModbusException, OSError) as exc:
+            raise SensorLinkLost(f"{self.spec}: writing register {address}: {_short(exc)}") \
+                from None
+        if rr.isError():
+            code = int(getattr(rr, "exception_code", 0))
+            raise SensorException(code, f"{self.spec}: Modbus exception {code} "
+                                        f"({EXCEPTION_NAMES.get(code, 'unknown')}) writing "
+                                        f"register {address} ({what})")
 
     def close(self) -> None:
         """Close the link (idempotent)."""
@@ -605,12 +760,15 @@ class DisplacementSensor:
         """Read every quantity of the map (one request per contiguous block).
 
         Raises :class:`SensorTimeout`, :class:`SensorException`, :class:`SensorFrameError` or
-        :class:`SensorLinkLost`; a sensor status word with ``error_mask`` bits set is not an error
-        but sets ``FLAG_SENSOR_STATUS``.
+        :class:`SensorLinkLost`. What the sensor itself reports as no measurement is not raised
+        but makes the sample invalid (``position_mm`` NaN, the reason in ``error``): a status
+        error (``FLAG_SENSOR_STATUS``), a sentinel, NaN or out-of-range position
+        (``FLAG_OUT_OF_RANGE``).
         """
         self.stats["reads"] += 1
         t0 = time.monotonic()
         values: dict[str, float | int] = {}
+        raws: dict[str, float | int] = {}
         flags = 0
         try:
             for start, count, quantities in self._blocks:
@@ -619,6 +777,7 @@ class DisplacementSensor:
                     flags |= FLAG_RETRIED
                 for q in quantities:
                     off = q.address - start
+                    raws[q.name] = q.raw(regs[off : off + q.count])
                     values[q.name] = q.decode(regs[off : off + q.count])
         except SensorError as exc:
             key = {FLAG_TIMEOUT: "timeouts", FLAG_EXCEPTION: "exceptions",
@@ -627,15 +786,29 @@ class DisplacementSensor:
                 self.stats[key] += 1
             raise
         t1 = time.monotonic()
+        position_mm = float(values["position"])
+        errors = []
         status = values.get("status")
-        if status is not None and status & self.map.quantities["status"].error_mask:
+        if status is not None and self.map.quantities["status"].status_error(int(status)):
             flags |= FLAG_SENSOR_STATUS
+            errors.append(f"sensor status 0x{int(status):04x} says error")
+        reason = self.map.position.invalid_reason(raws["position"])
+        if reason:
+            flags |= FLAG_OUT_OF_RANGE
+            errors.append(f"position {reason}")
+        if errors:
+            position_mm = math.nan
+            self.stats["invalid"] += 1
         temp = values.get("temperature")
+        if temp is not None and self.map.quantities["temperature"].invalid_reason(
+            raws["temperature"]
+        ):
+            temp = None
         self.stats["ok"] += 1
         return Sample(
-            position_mm=float(values["position"]), t_s=0.5 * (t0 + t1), flags=flags,
+            position_mm=position_mm, t_s=0.5 * (t0 + t1), flags=flags,
             latency_s=t1 - t0, status=None if status is None else int(status),
-            temperature_c=None if temp is None else float(temp),
+            temperature_c=None if temp is None else float(temp), error="; ".join(errors),
         )
 
     def read_or_flag(self) -> Sample:
@@ -691,17 +864,20 @@ class DisplacementSensor:
             raise SensorLinkLost(f"link to {self.spec} is down (retrying shortly)")
         self.connect()
 
-    def _read_block(self, address: int, count: int) -> tuple[list[int], bool]:
+    def _read_block(self, address: int, count: int,
+                    function: int | None = None) -> tuple[list[int], bool]:
         from pymodbus.exceptions import ConnectionException, ModbusIOException
 
+        function = self.map.function if function is None else function
         last: SensorError | None = None
         for attempt in range(self.retries + 1):
             if attempt:
                 self.stats["retries"] += 1
-            self._ensure_connected()
+            if self._client is None or not self._client.connected:
+                self._ensure_connected()
             self._rx_seen = False
             try:
-                if self.map.function == 3:
+                if function == 3:
                     rr = self._client.read_holding_registers(
                         address, count=count, device_id=self.unit_id)
                 else:

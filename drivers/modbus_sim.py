@@ -6,8 +6,15 @@ own asyncio loop. The owner updates values with :meth:`SensorServer.set_position
 :meth:`SensorServer.set_value` (encoded per the map) from any thread, or registers a callable with
 :meth:`SensorServer.set_source` that is asked for the value at every request (e.g. the plant
 simulation in the mock bench). Fault injection for tests: :meth:`delay_responses`,
-:meth:`fail_with_exception`, :meth:`corrupt_responses`. Only the map's registers exist: any other
-address answers with exception 2 (illegal data address), the other read function with exception 1.
+:meth:`fail_with_exception`, :meth:`corrupt_responses`, and what a real sensor reports when it
+cannot measure: :meth:`serve_status_error` (the map's error status) and :meth:`serve_sentinel`
+(its "no measurement" position code). ``adapter_latency_s`` delays every response, as an FTDI
+USB/RS-485 adapter's latency timer does (16 ms by default: drivers/sensors/README.md).
+
+Only the map's registers exist: its quantities (read with the map's function only), its
+``[[check]]`` registers (holding the expected values) and its ``[[on_connect]]`` registers
+(writable, every write logged in :attr:`SensorServer.writes`); any other address answers with
+exception 2 (illegal data address). The simulator keeps one register space for both functions.
 
 Usage::
 
@@ -41,6 +48,7 @@ class SensorServer:
         serial_port: str | None = None,
         baudrate: int | None = None,
         unit_id: int | None = None,
+        adapter_latency_s: float = 0.0,
     ) -> None:
         self.sensor_map = sensor_map if isinstance(sensor_map, SensorMap) else load_map(sensor_map)
         self.host = host
@@ -49,9 +57,27 @@ class SensorServer:
         self.baudrate = baudrate or self.sensor_map.line.baudrate
         self.unit_id = self.sensor_map.unit_id if unit_id is None else unit_id
         self._lock = threading.Lock()
+        if not 0.0 <= adapter_latency_s <= 1.0:
+            raise ValueError(f"adapter latency {adapter_latency_s} s outside 0 … 1 s")
+        self.adapter_latency_s = adapter_latency_s
         self._regs: dict[int, int] = {}
         for q in self.sensor_map.quantities.values():
             self._regs.update(self.sensor_map.encode(q.name, 0))
+        for start, count in self.sensor_map.read_blocks:  # the unmapped rest of a record: 0
+            for a in range(start, start + count):
+                self._regs.setdefault(a, 0)
+        self._read_function = dict.fromkeys(self._regs, self.sensor_map.function)
+        for c in self.sensor_map.checks:
+            self._claim(c.address, c.function, "[[check]]")
+            self._regs[c.address] = c.expect
+        self._writable: set[int] = set()
+        for w in self.sensor_map.on_connect:
+            for a in range(w.address, w.address + len(w.values)):
+                self._claim(a, 3, "[[on_connect]]")
+                self._regs.setdefault(a, 0)
+                self._writable.add(a)
+        self.writes: list[tuple[int, list[int]]] = []  # (address, values) of every write
+        self._raw_override: dict[str, tuple[float, int | None]] = {}
         self._sources: dict[str, Callable[[], float]] = {}
         self._delay_s = 0.0
         self._delay_count: int | None = 0
@@ -62,6 +88,15 @@ class SensorServer:
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._servers: list = []
+
+    def _claim(self, address: int, function: int, what: str) -> None:
+        seen = self._read_function.get(address)
+        if seen is not None and seen != function:
+            raise ValueError(
+                f"{self.sensor_map.source}: {what} register {address} is also read with "
+                f"function {seen}: this simulator keeps one register space"
+            )
+        self._read_function[address] = function
 
     # -- values ---------------------------------------------------------------------------
 
@@ -113,9 +148,27 @@ class SensorServer:
         with self._lock:
             self._corrupt_count = count
 
+    def serve_status_error(self, count: int | None = None, word: int | None = None) -> None:
+        """Serve a status word that says error (default: the map's first error bit/value) for
+        the next ``count`` requests (None: until :meth:`clear_faults`)."""
+        q = self.sensor_map.quantities["status"]  # KeyError: the map has no status word
+        self._override("status", q.error_word if word is None else word, count)
+
+    def serve_sentinel(self, count: int | None = None, raw: float | None = None) -> None:
+        """Serve a position the map calls "no measurement" (default: its first sentinel, NaN
+        for a float, or just outside its valid range) for the next ``count`` requests."""
+        q = self.sensor_map.position
+        self._override("position", q.invalid_raw if raw is None else raw, count)
+
+    def _override(self, name: str, raw: float, count: int | None) -> None:
+        self.sensor_map.quantities[name].encode_raw(raw)  # ValueError now, not in the server
+        with self._lock:
+            self._raw_override[name] = (raw, count)
+
     def clear_faults(self) -> None:
         with self._lock:
             self._delay_count = self._exc_count = self._corrupt_count = 0
+            self._raw_override.clear()
 
     @staticmethod
     def _take(count: int | None) -> tuple[bool, int | None]:
@@ -202,7 +255,7 @@ class SensorServer:
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         with self._lock:
-            addresses = sorted(self._regs)
+            addresses = sorted(self._read_function)
         simdata = [SimData(a, count=1, values=0, datatype=DataType.REGISTERS) for a in addresses]
         self._servers = []
         if self.tcp_port is not None:
@@ -248,19 +301,36 @@ class SensorServer:
             return ExcCodes.DEVICE_FAILURE
         with self._lock:
             self.requests += 1
-            for a, v in self._regs.items():
+            served = dict(self._regs)
+            for name, (raw, n) in list(self._raw_override.items()):
+                served.update(self.sensor_map.encode_raw(name, raw))
+                if n is not None:
+                    if n <= 1:
+                        del self._raw_override[name]
+                    else:
+                        self._raw_override[name] = (raw, n - 1)
+            for a, v in served.items():
                 registers[a - start_address] = v
             delay, self._delay_count = self._take(self._delay_count)
             delay_s = self._delay_s
             fail, self._exc_count = self._take(self._exc_count)
             code = self._exc_code
-        if delay and delay_s > 0:
-            await asyncio.sleep(delay_s)
+        latency_s = self.adapter_latency_s + (delay_s if delay else 0.0)
+        if latency_s > 0:
+            await asyncio.sleep(latency_s)
         if fail:
             return ExcCodes(code)
+        span = range(address, address + count)
         if set_values is not None:
-            return ExcCodes.ILLEGAL_FUNCTION  # a sensor's registers are read-only here
-        if function_code != self.sensor_map.function:
+            if function_code not in (6, 16) or any(a not in self._writable for a in span):
+                return ExcCodes.ILLEGAL_ADDRESS  # only the map's configuration is writable
+            with self._lock:
+                self._regs.update(zip(span, (int(v) & 0xFFFF for v in set_values), strict=True))
+                self.writes.append((address, [int(v) for v in set_values]))
+            return None
+        if function_code in (6, 16):  # pymodbus reads a written register back for the answer
+            return None if all(a in self._writable for a in span) else ExcCodes.ILLEGAL_ADDRESS
+        if any(self._read_function.get(a) != function_code for a in span):
             return ExcCodes.ILLEGAL_FUNCTION
         return None
 

@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+
 from smabench.drivers.displacement import (
     DATA_TYPES,
     FLAG_EXCEPTION,
@@ -164,7 +165,7 @@ scale = 0.001
     ("text", "key", "words"),
     [
         (GOOD.replace('"int32"', '"int64"'), "[registers.position].type", "unknown data type"),
-        (GOOD + 'word_order = "middle"\n', "[registers.position].word_order", "bad word order"),
+        (GOOD + 'word_order = "middle"\n', "[registers.position].word_order", "bad value 'middle'"),
         (GOOD.replace("address = 0\n", ""), "[registers.position].address", "missing"),
         (GOOD.replace('type = "int32"\n', ""), "[registers.position].type", "missing"),
         ("[sensor]\nunit_id = 1\n", "[registers]", "missing"),
@@ -175,7 +176,7 @@ scale = 0.001
          "unknown quantity"),
         (GOOD + "[registers.status]\naddress = 1\ntype = \"uint16\"\n",
          "[registers.status].address", "overlaps"),
-        (GOOD.replace("unit_id = 1", "function = 6"), "[sensor].function", "must be 3"),
+        (GOOD.replace("unit_id = 1", "function = 6"), "[sensor].function", "expected one of 3, 4"),
         (GOOD + 'units = "um"\n', "[registers.position].units", "'mm'"),
         (GOOD + "[line]\ntimeout_s = 0\n", "[line].timeout_s", "must be in"),
         (GOOD.replace("unit_id = 1", "unit_id = true"), "[sensor].unit_id", "integer"),
@@ -217,7 +218,8 @@ def test_parse_sensor_spec():
 def test_flags_and_sample():
     assert describe_flags(0) == ""
     assert describe_flags(FLAG_TIMEOUT | FLAG_RETRIED) == "timeout|retried"
-    assert Sample(1.0, 0.0, FLAG_SENSOR_STATUS).ok
+    assert not Sample(math.nan, 0.0, FLAG_SENSOR_STATUS).ok  # a status error is no position
+    assert Sample(1.0, 0.0, FLAG_RETRIED).ok
     assert not Sample(math.nan, 0.0, FLAG_LINK_LOST).ok
     assert len({FLAG_TIMEOUT, FLAG_EXCEPTION, FLAG_LINK_LOST, FLAG_FRAMING, FLAG_SENSOR_STATUS,
                 FLAG_RETRIED}) == 6
@@ -254,10 +256,11 @@ def test_tcp_read_position_and_status(tcp_server):
         assert 0 < sample.latency_s < T
         tcp_server.set_position_mm(-0.5)
         assert s.read().position_mm == pytest.approx(-0.5)
-        # status word with an error bit flags the sample but keeps the value
+        # a status word with an error bit makes the sample invalid: no position at all
         tcp_server.set_status(0x0001)
         sample = s.read()
-        assert sample.flags == FLAG_SENSOR_STATUS and sample.ok and sample.status == 1
+        assert sample.flags == FLAG_SENSOR_STATUS and not sample.ok and sample.status == 1
+        assert math.isnan(sample.position_mm) and "status 0x0001" in sample.error
         tcp_server.set_status(0x0100)  # not in error_mask
         assert s.read().flags == 0
         assert tcp_server.requests == 4  # one request per read: the map is contiguous
@@ -477,9 +480,12 @@ def test_rtu_float32(pty_pair):
         srv.set_status(1)
         with DisplacementSensor(FLOAT32, f"rtu:{b}", timeout_s=T) as s:
             sample = s.read()
-            assert sample.position_mm == pytest.approx(-3.25)
+            assert math.isnan(sample.position_mm)  # status bit 0: measurement invalid
             assert sample.temperature_c == pytest.approx(-5.5)
             assert sample.flags == FLAG_SENSOR_STATUS
+            srv.set_status(0)
+            sample = s.read()
+            assert sample.position_mm == pytest.approx(-3.25) and sample.ok
 
 
 def test_rtu_bad_crc_timeout_and_exception(rtu_server):

@@ -183,9 +183,14 @@ class MockBench:
         trace: str | Path | None = None,
         bootloader: bool = False,
         blank: bool = False,
+        sensor_map: str = SENSOR_MAP,
+        adapter_latency_s: float = 0.0,
     ) -> None:
         """``trace``: a CSV path for what the plant really got (:class:`PlantTrace`);
-        ``bootloader``, ``blank``: see :class:`EmulatedDriver` (emulated firmware only)."""
+        ``bootloader``, ``blank``: see :class:`EmulatedDriver` (emulated firmware only);
+        ``sensor_map``: the register map the sensor serves (any shipped map or a path);
+        ``adapter_latency_s``: every sensor answer held this long, as by an FTDI USB/RS-485
+        adapter's latency timer (16 ms by default on a real one)."""
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
@@ -197,6 +202,7 @@ class MockBench:
         if blank and not bootloader:
             raise ValueError("--blank needs --bootloader (a blank chip can only be flashed by one)")
         self.bootloader, self.blank = bootloader, blank
+        self.sensor_map, self.adapter_latency_s = sensor_map, adapter_latency_s
         self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
         self.speed = speed
         self.firmware = firmware
@@ -249,9 +255,10 @@ class MockBench:
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()
             self.server = SensorServer(
-                SENSOR_MAP,
+                self.sensor_map,
                 tcp_port=self.tcp_port,
                 serial_port=rtu_ends[0] if rtu_ends else None,
+                adapter_latency_s=self.adapter_latency_s,
             )
             self.server.set_source("position", self.link.position_mm)
             self.server.start()

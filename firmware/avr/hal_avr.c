@@ -1,14 +1,24 @@
-/* AVR implementation of hal.h for the current driver: ATmega328P at 16 MHz (firmware/PROTOCOL.md,
- * "Hardware").
+/* AVR implementation of hal.h for the reference current driver (firmware/hardware): ATmega328P at
+ * 16 MHz on an Arduino Nano. Pins (electrical.toml [pins]): D9 OC1A setpoint PWM, D8 driver
+ * enable (driven low = setpoint released; high-Z = clamped, also the reset state), D2 e-stop
+ * (INT0, pull-up, the NC contact holds it low), A0 current, A1 supply, A2 NTC, A4/A5 I2C to the
+ * ADS1115, D10/D12/D13 SPI to the MAX31855.
  *   UART0    115200 8N1 (U2X, UBRR0 = 16: 117647 baud, +2.1 %), RX and UDRE interrupts, ring
  *            buffers RX 64 / TX 128 bytes.
  *   Timer0   CTC, /64, OCR0A = 249: 1 kHz tick -> hal_millis() and the control tick flag.
- *   Timer1   fast PWM 10-bit (WGM1 = 7), no prescaler: 15.625 kHz on OC1A (PB1). Duty 0 disconnects
- *            OC1A and drives PB1 low, so "off" is a clean low pin, not a 1-clock spike.
- *   ADC      AVcc reference, /128 (125 kHz), single conversions restarted from the ADC interrupt,
- *            cycling channels 0, 1, 2 (each channel refreshed every ~0.3 ms).
- *   Watchdog 60 ms (WDTO_60MS); MCUSR saved and cleared, watchdog disabled in .init3.
+ *   Timer1   fast PWM 10-bit (WGM1 = 7), no prescaler: 15.625 kHz on OC1A. Its overflow interrupt
+ *            starts the ADC conversions, so every sample sits at the same phase of the PWM period
+ *            (synchronous sampling: what is left of the PWM ripple after the setpoint filter
+ *            aliases to a constant, never to a beat).
+ *   ADC      AVcc reference, /128 (104 us per conversion: every second PWM period), a fixed
+ *            sequence of 8 slots: current x6, supply, NTC; sums and counts per channel.
+ *   TWI      400 kHz master, polled with bounded waits (ADS1115).
+ *   SPI      master, mode 0, 4 MHz, polled with bounded waits (MAX31855).
+ *   Watchdog interrupt-then-reset, 32 ms + 32 ms: the interrupt turns the output off and leaves
+ *            a marker in .noinit, so a watchdog reset is recognised after the reset even when a
+ *            bootloader (optiboot) has cleared MCUSR; MCUSR is read and cleared in .init3.
  */
+#include <avr/eeprom.h>
 #include <avr/interrupt.h>
 #include <avr/io.h>
 #include <avr/sleep.h>
@@ -24,22 +34,118 @@
 #endif
 
 /* ------------------------------------------------------------------ reset cause (.init3) */
-/* Read before main() and before the C runtime clears .bss; .noinit keeps it from being zeroed.
- * After a watchdog reset WDRF forces WDE on with the shortest timeout: it must be cleared and the
- * watchdog disabled at once (avr-libc <avr/wdt.h> documentation). */
+#define WDT_MARK 0x5AC3u
 static uint8_t mcusr_at_reset __attribute__((section(".noinit")));
+static uint16_t wdt_mark __attribute__((section(".noinit")));
+static uint16_t wdt_mark_inv __attribute__((section(".noinit")));
+static uint8_t wdt_marked __attribute__((section(".noinit")));
 
 void hal_avr_early_init(void) __attribute__((naked, used, section(".init3")));
 void hal_avr_early_init(void)
 {
     mcusr_at_reset = MCUSR;
     MCUSR = 0;
-    wdt_disable();
+    wdt_disable(); /* after a watchdog reset WDRF forces WDE on at the shortest timeout */
+    wdt_marked = (wdt_mark == WDT_MARK && wdt_mark_inv == (uint16_t)~WDT_MARK) ? 1u : 0u;
+    wdt_mark = 0;
+    wdt_mark_inv = 0;
 }
 
 uint8_t hal_avr_reset_cause(void) { return mcusr_at_reset; }
 
-uint8_t hal_avr_was_watchdog_reset(void) { return (mcusr_at_reset & _BV(WDRF)) ? 1u : 0u; }
+uint8_t hal_avr_was_watchdog_reset(void)
+{
+    return ((mcusr_at_reset & _BV(WDRF)) || wdt_marked) ? 1u : 0u;
+}
+
+/* ------------------------------------------------------------------ output (PWM, enable) */
+#define ENABLE_DDR DDRB
+#define ENABLE_PORT PORTB
+#define ENABLE_BIT PB0 /* D8 */
+
+static inline void output_hard_off(void)
+{
+    ENABLE_DDR &= (uint8_t)~_BV(ENABLE_BIT);  /* high-Z: the pull-up clamps the setpoint */
+    ENABLE_PORT &= (uint8_t)~_BV(ENABLE_BIT);
+    TCCR1A &= (uint8_t)~(_BV(COM1A1) | _BV(COM1A0)); /* PWM pin low */
+    PORTB &= (uint8_t)~_BV(PB1);
+}
+
+/* Stage 1 of the watchdog: the main loop has not fed it for 32 ms. Output off, leave the marker,
+ * wait for stage 2 (the reset, 32 ms later). */
+ISR(WDT_vect)
+{
+    output_hard_off();
+    wdt_mark = WDT_MARK;
+    wdt_mark_inv = (uint16_t)~WDT_MARK;
+    for (;;) {
+    }
+}
+
+void hal_output_enable(uint8_t on)
+{
+    if (on) {
+        ENABLE_PORT &= (uint8_t)~_BV(ENABLE_BIT);
+        ENABLE_DDR |= _BV(ENABLE_BIT); /* driven low: setpoint released */
+    } else {
+        ENABLE_DDR &= (uint8_t)~_BV(ENABLE_BIT);
+    }
+}
+
+void hal_pwm_set(uint16_t duty)
+{
+    if (duty == 0u) {
+        TCCR1A &= (uint8_t)~(_BV(COM1A1) | _BV(COM1A0)); /* disconnect OC1A: PB1 = PORTB1 = 0 */
+        PORTB &= (uint8_t)~_BV(PB1);
+        OCR1A = 0;
+        return;
+    }
+    if (duty > HAL_PWM_TOP)
+        duty = HAL_PWM_TOP;
+    OCR1A = duty; /* double-buffered in fast PWM: takes effect at the next BOTTOM */
+    TCCR1A |= _BV(COM1A1);
+}
+
+static void pwm_init(void)
+{
+    ENABLE_DDR &= (uint8_t)~_BV(ENABLE_BIT);
+    ENABLE_PORT &= (uint8_t)~_BV(ENABLE_BIT);
+    PORTB &= (uint8_t)~_BV(PB1); /* pin low before it becomes an output */
+    DDRB |= _BV(DDB1);
+    TCCR1A = _BV(WGM11) | _BV(WGM10); /* fast PWM 10-bit (mode 7), OC1A disconnected */
+    OCR1A = 0;
+    TCNT1 = 0;
+    TCCR1B = _BV(WGM12) | _BV(CS10); /* no prescaler: 16 MHz / 1024 = 15.625 kHz */
+}
+
+/* ------------------------------------------------------------------ e-stop (D2, INT0) */
+static volatile uint8_t estop_latched;
+
+ISR(INT0_vect)
+{
+    output_hard_off(); /* at once, before the core's next tick */
+    estop_latched = 1;
+}
+
+uint8_t hal_estop_tripped(void)
+{
+    uint8_t t;
+    ATOMIC_BLOCK(ATOMIC_RESTORESTATE)
+    {
+        t = (uint8_t)((PIND & _BV(PD2)) ? 1u : 0u) | estop_latched;
+        estop_latched = 0;
+    }
+    return t;
+}
+
+static void estop_init(void)
+{
+    DDRD &= (uint8_t)~_BV(PD2);
+    PORTD |= _BV(PD2);                   /* pull-up: an open contact (or cable) reads high */
+    EICRA = _BV(ISC01) | _BV(ISC00);     /* INT0 on the rising edge */
+    EIFR = _BV(INTF0);
+    EIMSK = _BV(INT0);
+}
 
 /* ------------------------------------------------------------------ UART0 */
 #define RX_SIZE 64u  /* powers of two: indices wrap with a mask */
@@ -157,80 +263,227 @@ static void tick_init(void)
     TCCR0B = _BV(CS01) | _BV(CS00); /* clk / 64 */
 }
 
-/* ------------------------------------------------------------------ PWM (Timer1, OC1A = PB1) */
-void hal_pwm_set(uint16_t duty)
-{
-    if (duty == 0u) {
-        TCCR1A &= (uint8_t)~(_BV(COM1A1) | _BV(COM1A0)); /* disconnect OC1A: PB1 = PORTB1 = 0 */
-        PORTB &= (uint8_t)~_BV(PB1);
-        OCR1A = 0;
-        return;
-    }
-    if (duty > HAL_PWM_TOP)
-        duty = HAL_PWM_TOP;
-    OCR1A = duty; /* double-buffered in fast PWM: takes effect at the next BOTTOM */
-    TCCR1A |= _BV(COM1A1); /* non-inverting: set at BOTTOM, clear on compare match */
-}
-
-static void pwm_init(void)
-{
-    PORTB &= (uint8_t)~_BV(PB1); /* pin low before it becomes an output */
-    DDRB |= _BV(DDB1);
-    TCCR1A = _BV(WGM11) | _BV(WGM10); /* fast PWM 10-bit (mode 7), OC1A disconnected */
-    OCR1A = 0;
-    TCNT1 = 0;
-    TCCR1B = _BV(WGM12) | _BV(CS10); /* no prescaler: 16 MHz / 1024 = 15.625 kHz */
-}
-
-/* ------------------------------------------------------------------ ADC */
-#define ADC_CHANNELS 3u
-static volatile uint16_t adc_mv[ADC_CHANNELS];
-static volatile uint8_t adc_channel;
-
+/* ------------------------------------------------------------------ ADC, synchronous */
 #define ADMUX_BASE (_BV(REFS0)) /* AVcc reference, right-adjusted */
+static const uint8_t adc_slots[8] = {HAL_ADC_CURRENT, HAL_ADC_CURRENT, HAL_ADC_CURRENT,
+                                     HAL_ADC_SUPPLY,  HAL_ADC_CURRENT, HAL_ADC_CURRENT,
+                                     HAL_ADC_CURRENT, HAL_ADC_AMBIENT};
+static volatile uint16_t adc_sum[HAL_ADC_CHANNELS];
+static volatile uint8_t adc_n[HAL_ADC_CHANNELS];
+static uint16_t adc_last[HAL_ADC_CHANNELS];
+static volatile uint8_t adc_slot;
+
+/* Every PWM period (64 us) at BOTTOM: start a conversion unless one is running. */
+ISR(TIMER1_OVF_vect)
+{
+    if (!(ADCSRA & _BV(ADSC)))
+        ADCSRA |= _BV(ADSC);
+}
 
 ISR(ADC_vect)
 {
-    uint16_t raw = ADC;
-    adc_mv[adc_channel] = (uint16_t)(((uint32_t)raw * 5000u + 511u) / 1023u);
-    uint8_t next = (uint8_t)(adc_channel + 1u);
-    if (next >= ADC_CHANNELS)
-        next = 0;
-    adc_channel = next;
-    ADMUX = (uint8_t)(ADMUX_BASE | next);
-    ADCSRA |= _BV(ADSC); /* next single conversion */
+    uint8_t ch = adc_slots[adc_slot];
+    if (adc_n[ch] < 255u) {
+        adc_sum[ch] += ADC;
+        adc_n[ch]++;
+    }
+    adc_slot = (uint8_t)((adc_slot + 1u) & 7u);
+    ADMUX = (uint8_t)(ADMUX_BASE | adc_slots[adc_slot]);
 }
 
-uint16_t hal_adc_mv(uint8_t channel)
+uint16_t hal_adc_q4(uint8_t channel)
 {
-    uint16_t v;
-    if (channel >= ADC_CHANNELS)
+    uint16_t sum;
+    uint8_t n;
+    if (channel >= HAL_ADC_CHANNELS)
         return 0;
-    ATOMIC_BLOCK(ATOMIC_RESTORESTATE) { v = adc_mv[channel]; }
-    return v;
+    ATOMIC_BLOCK(ATOMIC_RESTORESTATE)
+    {
+        sum = adc_sum[channel];
+        n = adc_n[channel];
+        adc_sum[channel] = 0;
+        adc_n[channel] = 0;
+    }
+    if (n)
+        adc_last[channel] = (uint16_t)((((uint32_t)sum << 4) + n / 2u) / n);
+    return adc_last[channel];
 }
 
 static void adc_init(void)
 {
     DIDR0 = _BV(ADC0D) | _BV(ADC1D) | _BV(ADC2D); /* no digital input buffers on the analog pins */
-    adc_channel = 0;
-    ADMUX = ADMUX_BASE | 0u;
-    /* enable, interrupt, /128; the first conversion starts in hal_avr_start() */
-    ADCSRA = _BV(ADEN) | _BV(ADIE) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0);
+    adc_slot = 0;
+    ADMUX = ADMUX_BASE | adc_slots[0];
+    ADCSRA = _BV(ADEN) | _BV(ADIE) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0); /* /128 */
+}
+
+/* ------------------------------------------------------------------ TWI (ADS1115) */
+#define ADS1115_SLA (0x48u << 1) /* ADDR to GND (electrical.toml precise_adc.i2c_address) */
+#define TWI_WAIT 2000u           /* polls of TWINT: ~0.5 ms, > one byte at 400 kHz */
+
+static int8_t twi_wait(void)
+{
+    for (uint16_t i = 0; i < TWI_WAIT; i++)
+        if (TWCR & _BV(TWINT))
+            return 0;
+    return -1;
+}
+
+static void twi_stop(void)
+{
+    TWCR = _BV(TWINT) | _BV(TWSTO) | _BV(TWEN);
+}
+
+static int8_t twi_start(uint8_t sla_rw)
+{
+    TWCR = _BV(TWINT) | _BV(TWSTA) | _BV(TWEN);
+    if (twi_wait() || ((TWSR & 0xF8u) != 0x08u && (TWSR & 0xF8u) != 0x10u))
+        return -1;
+    TWDR = sla_rw;
+    TWCR = _BV(TWINT) | _BV(TWEN);
+    if (twi_wait())
+        return -1;
+    uint8_t st = TWSR & 0xF8u;
+    return (st == 0x18u || st == 0x40u) ? 0 : -1; /* SLA+W / SLA+R acknowledged */
+}
+
+static int8_t twi_write(uint8_t b)
+{
+    TWDR = b;
+    TWCR = _BV(TWINT) | _BV(TWEN);
+    return (twi_wait() || (TWSR & 0xF8u) != 0x28u) ? -1 : 0;
+}
+
+static int8_t twi_read(uint8_t *b, uint8_t ack)
+{
+    TWCR = (uint8_t)(_BV(TWINT) | _BV(TWEN) | (ack ? _BV(TWEA) : 0));
+    if (twi_wait())
+        return -1;
+    *b = TWDR;
+    return 0;
+}
+
+/* ADS1115 config (TI SBAS444, Config register): OS = 1 (start), MUX, PGA, MODE = 1 (single
+ * shot), DR = 111 (860 SPS), comparator off (COMP_QUE = 11).
+ *   wire:  MUX 000 (AIN0-AIN1), PGA 010 (+-2.048 V) -> 0x85E3
+ *   shunt: MUX 011 (AIN2-AIN3), PGA 101 (+-0.256 V) -> 0xBBE3 */
+int8_t hal_xadc_start(uint8_t channel)
+{
+    uint16_t cfg = channel == HAL_XADC_WIRE ? 0x85E3u : 0xBBE3u;
+    int8_t rc = twi_start(ADS1115_SLA);
+    if (!rc)
+        rc = twi_write(0x01u);
+    if (!rc)
+        rc = twi_write((uint8_t)(cfg >> 8));
+    if (!rc)
+        rc = twi_write((uint8_t)cfg);
+    twi_stop();
+    return rc;
+}
+
+int8_t hal_xadc_read(int16_t *code)
+{
+    uint8_t hi = 0, lo = 0;
+    int8_t rc = twi_start(ADS1115_SLA);
+    if (!rc)
+        rc = twi_write(0x00u); /* pointer: conversion register */
+    twi_stop();
+    if (!rc)
+        rc = twi_start(ADS1115_SLA | 1u);
+    if (!rc)
+        rc = twi_read(&hi, 1);
+    if (!rc)
+        rc = twi_read(&lo, 0);
+    twi_stop();
+    if (!rc)
+        *code = (int16_t)(((uint16_t)hi << 8) | lo);
+    return rc;
+}
+
+static void twi_init(void)
+{
+    TWSR = 0;  /* prescaler 1 */
+    TWBR = 12; /* 16 MHz / (16 + 2 * 12) = 400 kHz */
+    TWCR = _BV(TWEN);
+}
+
+/* ------------------------------------------------------------------ SPI (MAX31855) */
+#define TC_CS PB2 /* D10 = SS: an output, so the SPI stays master */
+#define SPI_WAIT 400u
+
+int8_t hal_tc_read(uint32_t *word)
+{
+    uint32_t w = 0;
+    int8_t rc = 0;
+    PORTB &= (uint8_t)~_BV(TC_CS);
+    for (uint8_t k = 0; k < 4u && !rc; k++) {
+        SPDR = 0;
+        uint16_t i = 0;
+        while (!(SPSR & _BV(SPIF)) && ++i < SPI_WAIT) {
+        }
+        if (i >= SPI_WAIT)
+            rc = -1;
+        w = (w << 8) | SPDR;
+    }
+    PORTB |= _BV(TC_CS);
+    *word = w;
+    return rc;
+}
+
+static void spi_init(void)
+{
+    PORTB |= _BV(TC_CS);
+    DDRB |= _BV(TC_CS) | _BV(PB3) | _BV(PB5); /* CS, MOSI, SCK out; MISO in */
+    DDRB &= (uint8_t)~_BV(PB4);
+    PORTB |= _BV(PB4); /* pull-up: no chip reads all ones (absent) */
+    SPCR = _BV(SPE) | _BV(MSTR); /* mode 0, fosc/4 = 4 MHz (MAX31855: <= 5 MHz) */
+}
+
+/* ------------------------------------------------------------------ EEPROM */
+void hal_eeprom_read(uint16_t addr, uint8_t *data, uint8_t len)
+{
+    eeprom_read_block(data, (const void *)(uintptr_t)addr, len);
+}
+
+void hal_eeprom_write(uint16_t addr, const uint8_t *data, uint8_t len)
+{
+    for (uint8_t i = 0; i < len; i++) {
+        wdt_reset(); /* one byte takes 3.4 ms; the watchdog's first stage is 32 ms */
+        eeprom_update_byte((uint8_t *)(uintptr_t)(addr + i), data[i]);
+    }
+    eeprom_busy_wait();
+    wdt_reset();
 }
 
 /* ------------------------------------------------------------------ watchdog */
 void hal_watchdog_feed(void) { wdt_reset(); }
 
-void hal_avr_watchdog_enable(void) { wdt_enable(WDTO_60MS); }
+void hal_avr_watchdog_enable(void)
+{
+    /* interrupt + reset mode, 32 ms per stage (WDP = 001); timed sequence as in avr-libc */
+    uint8_t on = _BV(WDCE) | _BV(WDE);
+    uint8_t mode = _BV(WDIE) | _BV(WDE) | _BV(WDP0);
+    __asm__ __volatile__("in __tmp_reg__, __SREG__\n\t"
+                         "cli\n\t"
+                         "wdr\n\t"
+                         "sts %0, %1\n\t"
+                         "sts %0, %2\n\t"
+                         "out __SREG__, __tmp_reg__\n\t"
+                         :
+                         : "n"(_SFR_MEM_ADDR(WDTCSR)), "r"(on), "r"(mode)
+                         : "r0");
+}
 
 /* ------------------------------------------------------------------ init */
 void hal_avr_init(void)
 {
-    pwm_init(); /* first: the output pin is driven low as early as possible */
+    pwm_init(); /* first: the output pin is driven low and the driver disabled at once */
+    estop_init();
     uart_init();
     tick_init();
     adc_init();
+    twi_init();
+    spi_init();
     set_sleep_mode(SLEEP_MODE_IDLE);
 }
 
@@ -252,5 +505,6 @@ void hal_avr_idle(void)
 
 void hal_avr_start(void)
 {
-    ADCSRA |= _BV(ADSC); /* start the ADC conversion chain (runs from its interrupt) */
+    TIFR1 = _BV(TOV1);
+    TIMSK1 = _BV(TOIE1); /* synchronous ADC starts from here on */
 }

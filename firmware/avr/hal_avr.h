@@ -10,14 +10,16 @@ void hal_avr_init(void);
 void hal_avr_start(void);
 /* MCUSR as read in .init3, before it was cleared. */
 uint8_t hal_avr_reset_cause(void);
-/* 1 when the last reset was caused by the watchdog (WDRF). */
+/* 1 when the last reset was caused by the watchdog: WDRF in MCUSR, or the marker its interrupt
+ * left in .noinit (a bootloader may have cleared MCUSR). */
 uint8_t hal_avr_was_watchdog_reset(void);
 /* 1 (and clears it) when at least one 1 ms tick elapsed since the last call. */
 uint8_t hal_avr_take_tick(void);
 /* Sleep until the next interrupt unless a received byte or a tick is pending; returns with
  * interrupts on. */
 void hal_avr_idle(void);
-/* Enable the hardware watchdog, 60 ms. */
+/* Enable the hardware watchdog: interrupt (output off, marker) after 32 ms without a feed, reset
+ * 32 ms later. */
 void hal_avr_watchdog_enable(void);
 /* Received bytes lost to a full RX ring or a hardware overrun (wraps). */
 uint8_t hal_avr_uart_overruns(void);

@@ -1,15 +1,22 @@
 /* Hardware abstraction used by the portable core (firmware/core). Implemented by the AVR HAL
- * (firmware/avr/hal_avr.c) and by the host test HAL (firmware/host/hal_fake.c). */
+ * (firmware/avr/hal_avr.c) and by the host test HAL (firmware/host/hal_fake.c). The circuit is
+ * the reference linear current sink of firmware/hardware (electrical.h holds its numbers). */
 #ifndef SMA_HAL_H
 #define SMA_HAL_H
 #include <stdint.h>
 
-#define HAL_PWM_TOP 1023u /* Timer1 10-bit fast PWM: duty 0 ... HAL_PWM_TOP */
+#define HAL_PWM_TOP 1023u /* Timer1 10-bit fast PWM: setpoint duty 0 ... HAL_PWM_TOP */
 
 enum hal_adc_channel {
-    HAL_ADC_CURRENT = 0, /* shunt amplifier, 1 V per A */
-    HAL_ADC_VOLTAGE = 1, /* wire voltage divider, 1/3 */
-    HAL_ADC_AMBIENT = 2, /* NTC 10 kOhm B=3950 (top) to 10 kOhm (bottom), AVcc = 5 V */
+    HAL_ADC_CURRENT = 0, /* ADC0: shunt amplifier (fast current path), anti-alias filtered */
+    HAL_ADC_SUPPLY = 1,  /* ADC1: wire supply through its divider */
+    HAL_ADC_AMBIENT = 2, /* ADC2: ambient NTC divider (NTC on top, fixed resistor to ground) */
+    HAL_ADC_CHANNELS = 3
+};
+
+enum hal_xadc_channel {
+    HAL_XADC_WIRE = 0,  /* external ADC (ADS1115) AIN0-AIN1: Kelvin-sensed wire voltage */
+    HAL_XADC_SHUNT = 1, /* AIN2-AIN3: shunt voltage (precise current) */
 };
 
 /* Milliseconds since reset (wraps after 49 days). */
@@ -19,10 +26,27 @@ int16_t hal_uart_read(void);
 /* Queue bytes for transmission; returns how many were queued (drops the rest if the TX ring
  * buffer is full). Non-blocking. */
 uint8_t hal_uart_write(const uint8_t *data, uint8_t len);
-/* Set the PWM duty, 0 ... HAL_PWM_TOP. 0 means the MOSFET is off. */
+/* Setpoint PWM duty, 0 ... HAL_PWM_TOP (filtered to the sink's op-amp). 0 = pin low. */
 void hal_pwm_set(uint16_t duty);
-/* Latest conversion of an ADC channel, in millivolts at the pin (0 ... 5000). */
-uint16_t hal_adc_mv(uint8_t channel);
+/* Driver enable line: 0 clamps the sink's setpoint to zero in hardware (also the reset state). */
+void hal_output_enable(uint8_t on);
+/* Mean of the conversions of an ADC channel since the previous call, in 1/16 ADC counts
+ * (0 ... 1023*16). Conversions are started in step with the PWM period (synchronous sampling).
+ * Without a new conversion since the previous call the last mean is returned again. */
+uint16_t hal_adc_q4(uint8_t channel);
+/* Hardware e-stop input: 1 when tripped now or at any moment since the previous call. */
+uint8_t hal_estop_tripped(void);
+/* External ADC: start a single conversion of a channel (HAL_XADC_*); 0 on success, -1 when the
+ * device does not answer. */
+int8_t hal_xadc_start(uint8_t channel);
+/* External ADC: read the last conversion (signed code); 0 on success, -1 on a bus error. */
+int8_t hal_xadc_read(int16_t *code);
+/* Thermocouple amplifier (MAX31855): read its 32-bit word; 0 on success, -1 when the bus does not
+ * complete. An absent chip reads as all ones or all zeros (the core decides). */
+int8_t hal_tc_read(uint32_t *word);
+/* EEPROM (byte addresses 0 ... 1023). Writes feed the hardware watchdog between bytes. */
+void hal_eeprom_read(uint16_t addr, uint8_t *data, uint8_t len);
+void hal_eeprom_write(uint16_t addr, const uint8_t *data, uint8_t len);
 /* Feed the hardware watchdog. */
 void hal_watchdog_feed(void);
 #endif

@@ -6,9 +6,11 @@
  * Input: byte 0 selects the mode and start conditions, the rest is
  *   mode raw (bit 0 = 0): bytes straight into the UART, a tick every 1 + (b0 >> 4) bytes;
  *   mode structured (bit 0 = 1): records [op, a, b, ...]:
- *     op % 4 == 0: command type a, payload length b % 8, payload bytes (framed with good CRC)
+ *     op % 4 == 0: command type a, payload length b % 12, payload bytes (framed with good CRC)
  *     op % 4 == 1: a ticks (1 ms each)
- *     op % 4 == 2: change the load: a = wire resistance (x 100 mOhm), b & 1 = open
+ *     op % 4 == 2: change the conditions: a = wire resistance (x 10 mOhm), b bits: 1 open wire,
+ *                  2 e-stop tripped, 4 NTC open, 8 external ADC absent, 16 thermocouple present
+ *                  at 20 + a degC, 32 thermocouple open-circuit fault
  *     op % 4 == 3: a % 32 raw bytes into the UART */
 #include <stdio.h>
 #include <stdlib.h>
@@ -18,7 +20,7 @@
 #include "hal_fake.h"
 #include "proto.h"
 
-#define DUTY_MAX (HAL_PWM_TOP * 95u / 100u)
+#define DUTY_MAX HAL_PWM_TOP
 #define REQUIRE(c)                                                                    \
     do {                                                                              \
         if (!(c)) {                                                                   \
@@ -29,7 +31,7 @@
 
 static frame_rx_t host_rx;     /* decodes what the device sends */
 static uint32_t last_ack_ms;   /* harness view of the last valid command (= last ACK) */
-static fake_load_t load;
+static uint32_t last_lease_ms; /* last SET_CURRENT or ENABLE acknowledged */
 
 /* Raw receiver alone: packets and counters stay within bounds. */
 static void fuzz_receiver(const uint8_t *data, size_t size)
@@ -65,6 +67,10 @@ static void drain_tx(void)
             if (p.type == MSG_ACK) {
                 REQUIRE(p.len >= 3);
                 last_ack_ms = hal_millis();
+                if (p.payload[1] == MSG_SET_CURRENT ||
+                    (p.payload[1] == MSG_ENABLE && p.payload[2] == ST_OK)) {
+                    last_lease_ms = hal_millis();
+                }
             }
         }
     }
@@ -82,6 +88,9 @@ static void check_state(void)
             (s->telemetry_period_ms >= TELEMETRY_MIN_MS && s->telemetry_period_ms <= TELEMETRY_MAX_MS));
     REQUIRE(!!(s->flags & FLAG_ENABLED) == !!s->enabled);
     REQUIRE(!s->enabled || !(s->flags & FLAGS_LATCHED));
+    REQUIRE(s->lease_ms >= LEASE_MIN_MS && s->lease_ms <= LEASE_MAX_MS);
+    REQUIRE(!!s->enabled == !!fake_output_enabled());
+    REQUIRE(s->ambient_cdeg == TEMP_NONE || (s->ambient_cdeg >= -4000 && s->ambient_cdeg <= 12500));
     REQUIRE(s->enabled || (s->duty == 0 && fake_pwm_duty() == 0));
 }
 
@@ -102,6 +111,9 @@ static void tick(void)
     /* host timeout: off within the timeout of the last valid frame */
     if (core_state()->enabled) {
         REQUIRE(hal_millis() - last_ack_ms < core_state()->host_timeout_ms);
+        /* lease: a non-zero setpoint lives at most the lease after its last renewal */
+        REQUIRE(core_state()->setpoint_ma == 0 ||
+                hal_millis() - last_lease_ms < core_state()->lease_ms);
     }
 }
 
@@ -126,7 +138,7 @@ static void run_structured(const uint8_t *d, size_t size)
         i += 3;
         switch (op % 4u) {
         case 0: {
-            uint8_t len = (uint8_t)(b % 8u);
+            uint8_t len = (uint8_t)(b % 12u);
             if (i + len > size) {
                 len = (uint8_t)(size - i);
             }
@@ -143,8 +155,22 @@ static void run_structured(const uint8_t *d, size_t size)
             }
             break;
         case 2:
-            load.load_mohm = 100u * (uint32_t)a;
-            load.open = (uint8_t)(b & 1u);
+            fake_sink()->wire_ohm = 0.01 * (a ? a : 1);
+            fake_sink()->open = (uint8_t)(b & 1u);
+            fake_estop((uint8_t)(b & 2u));
+            if (b & 4u) {
+                fake_ntc_mv(0);
+            } else {
+                fake_ntc_celsius(22.0);
+            }
+            fake_xadc_present(!(b & 8u));
+            if (b & 32u) {
+                fake_tc_fault(TC_OC);
+            } else if (b & 16u) {
+                fake_tc_celsius(20.0 + a);
+            } else {
+                fake_tc_absent();
+            }
             break;
         default: {
             size_t len = a % 32u;
@@ -170,13 +196,12 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     uint8_t mode = data[0];
     fake_reset();
     fake_set_millis((mode & 2u) ? 0xFFFFFF00u : 0u); /* also run across the 32-bit wrap */
-    load = (fake_load_t){12000, 4200, 0};
-    fake_set_plant(fake_plant_resistive, &load);
-    fake_adc_set(HAL_ADC_VOLTAGE, 1500);
-    fake_adc_set(HAL_ADC_AMBIENT, (uint16_t)(mode * 19u));
+    fake_eeprom_erase(); /* every input starts from a blank EEPROM */
+    fake_ntc_mv((uint16_t)(mode * 19u));
     core_init((uint8_t)((mode >> 2) & 1u));
     frame_rx_init(&host_rx);
     last_ack_ms = hal_millis();
+    last_lease_ms = last_ack_ms;
     check_state();
     if (mode & 1u) {
         run_structured(data + 1, size - 1);

@@ -1,6 +1,15 @@
 /* Fake HAL (see hal_fake.h). */
+#include <math.h>
 #include <string.h>
+#include "electrical.h"
 #include "hal_fake.h"
+#include "proto.h"
+
+#define SUB_US 50.0          /* model step */
+#define ANTIALIAS_TAU_US 100.0 /* shunt amplifier RC (electrical.toml: 1 kOhm, 100 nF) */
+#define SINK_TAU_US 20.0     /* op-amp + MOSFET loop */
+#define VDS_MIN_V 0.15       /* sink headroom at full current */
+#define ADC_REF_MV 5000.0
 
 static uint32_t now_ms;
 static uint8_t rx_buf[FAKE_RX_CAP];
@@ -8,37 +17,125 @@ static size_t rx_head, rx_tail;
 static uint8_t tx_buf[FAKE_TX_CAP];
 static size_t tx_len, tx_limit;
 static uint16_t pwm_duty;
+static uint8_t out_enabled;
 static uint32_t pwm_sets, wdt_feeds;
-static uint16_t adc_mv[3];
-static fake_plant_fn plant;
-static void *plant_ctx;
+static fake_sink_t sink;
+static double v1, v2;        /* the two setpoint RC poles, in "duty counts" */
+static double i_a, i_meas_a; /* wire current, anti-aliased amplifier output (as A) */
+static uint32_t adc_sum[HAL_ADC_CHANNELS], adc_n[HAL_ADC_CHANNELS];
+static uint16_t adc_last[HAL_ADC_CHANNELS];
+static double ntc_mv;
+static uint8_t estop_level, estop_latched;
+static uint8_t xadc_on, xadc_ch;
+static int16_t xadc_code;
+static uint32_t tc_word;
+static uint8_t eeprom[1024];
+static uint32_t dither;
 
-uint16_t fake_plant_resistive(uint16_t duty, void *ctx)
+void fake_eeprom_erase(void) { memset(eeprom, 0xFF, sizeof eeprom); }
+uint8_t fake_eeprom_byte(uint16_t addr) { return eeprom[addr & 1023u]; }
+
+static double ntc_divider_mv(double c)
 {
-    const fake_load_t *l = ctx;
-    if (l->open || l->load_mohm == 0u) {
-        return 0;
-    }
-    /* mA = duty/TOP * mV / mOhm * 1000 */
-    uint64_t ma = (uint64_t)duty * l->supply_mv * 1000u / ((uint64_t)HAL_PWM_TOP * l->load_mohm);
-    return ma > 5000u ? 5000u : (uint16_t)ma; /* ADC full scale 5 V */
+    double r = ELEC_NTC_R25_OHM * exp(ELEC_NTC_BETA_K * (1.0 / (c + 273.15) - 1.0 / 298.15));
+    return ADC_REF_MV * ELEC_NTC_FIXED_OHM / (r + ELEC_NTC_FIXED_OHM);
 }
 
 void fake_reset(void)
 {
+    static uint8_t eeprom_init;
+    if (!eeprom_init) {
+        fake_eeprom_erase();
+        eeprom_init = 1;
+    }
     now_ms = 0;
     rx_head = rx_tail = 0;
     tx_len = 0;
     tx_limit = FAKE_TX_CAP;
     pwm_duty = 0;
+    out_enabled = 0;
     pwm_sets = wdt_feeds = 0;
-    memset(adc_mv, 0, sizeof adc_mv);
-    plant = NULL;
-    plant_ctx = NULL;
+    sink = (fake_sink_t){0.44, 5.0, 0.06, 0, 1.0, 1.0, 0.0};
+    v1 = v2 = i_a = i_meas_a = 0.0;
+    memset(adc_sum, 0, sizeof adc_sum);
+    memset(adc_n, 0, sizeof adc_n);
+    memset(adc_last, 0, sizeof adc_last);
+    ntc_mv = ntc_divider_mv(22.0);
+    estop_level = estop_latched = 0;
+    xadc_on = 1;
+    xadc_ch = 0;
+    xadc_code = 0;
+    tc_word = 0xFFFFFFFFu;
+    dither = 12345u;
 }
 
 void fake_set_millis(uint32_t ms) { now_ms = ms; }
-void fake_advance_ms(uint32_t ms) { now_ms += ms; }
+fake_sink_t *fake_sink(void) { return &sink; }
+double fake_current_a(void) { return i_a; }
+
+/* deterministic +-0.5 count noise, so oversampling has something to average */
+static double noise(void)
+{
+    dither = dither * 1103515245u + 12345u;
+    return ((double)((dither >> 16) & 0x7FFFu) / 32768.0) - 0.5;
+}
+
+static uint16_t adc_counts(double mv)
+{
+    double c = floor(mv / ADC_REF_MV * 1024.0 + noise());
+    return (uint16_t)(c < 0.0 ? 0.0 : c > 1023.0 ? 1023.0 : c);
+}
+
+static void sample_adcs(void)
+{
+    double a_per_count = ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 / 256.0 * 1e-6;
+    double amp_a = i_meas_a * sink.adc_gain + sink.adc_offset_ma * 1e-3;
+    uint16_t c0 = adc_counts(amp_a / a_per_count / 1024.0 * ADC_REF_MV);
+    double vs = sink.supply_v - i_a * sink.source_ohm;
+    uint16_t c1 = adc_counts(vs * 1000.0 * ELEC_SUPPLY_MONITOR_DIV_Q16 / 65536.0);
+    uint16_t c2 = adc_counts(ntc_mv);
+    adc_sum[0] += c0;
+    adc_sum[1] += c1;
+    adc_sum[2] += c2;
+    adc_n[0]++;
+    adc_n[1]++;
+    adc_n[2]++;
+}
+
+static void model_step(double dt_us)
+{
+    double duty = pwm_duty;
+    double a = dt_us / ELEC_SETPOINT_FILTER_TAU_US;
+    v1 += (duty - v1) * a;
+    v2 += (v1 - v2) * a;
+    /* the enable line clamps the op-amp's input: off at once, whatever the RC filter holds */
+    double target = out_enabled ? v2 * ELEC_SETPOINT_UA_PER_COUNT_Q8 / 256.0 * 1e-6 * sink.setpoint_gain
+                                : 0.0;
+    double rsh = ELEC_SHUNT_MOHM * 1e-3;
+    double i_max = sink.open ? 0.0
+                             : (sink.supply_v - VDS_MIN_V) / (sink.wire_ohm + rsh + sink.source_ohm);
+    if (i_max < 0.0) {
+        i_max = 0.0;
+    }
+    if (target > i_max) {
+        target = i_max; /* compliance: the op-amp rails, the MOSFET is fully on */
+    }
+    i_a += (target - i_a) * (dt_us / SINK_TAU_US > 1.0 ? 1.0 : dt_us / SINK_TAU_US);
+    i_meas_a += (i_a - i_meas_a) * (dt_us / ANTIALIAS_TAU_US);
+}
+
+void fake_advance_ms(uint32_t ms)
+{
+    for (uint32_t k = 0; k < ms; k++) {
+        for (int j = 0; j < 20; j++) {
+            model_step(SUB_US);
+            if (j % 5 == 4) {
+                sample_adcs(); /* 4 conversions per ms, at the same PWM phase */
+            }
+        }
+        now_ms++;
+    }
+}
 
 void fake_rx_push(const uint8_t *data, size_t len)
 {
@@ -61,20 +158,31 @@ const uint8_t *fake_tx_data(size_t *len)
 void fake_tx_clear(void) { tx_len = 0; }
 void fake_tx_set_limit(size_t max_bytes) { tx_limit = max_bytes < FAKE_TX_CAP ? max_bytes : FAKE_TX_CAP; }
 uint16_t fake_pwm_duty(void) { return pwm_duty; }
+uint8_t fake_output_enabled(void) { return out_enabled; }
 uint32_t fake_pwm_set_count(void) { return pwm_sets; }
 uint32_t fake_watchdog_feeds(void) { return wdt_feeds; }
+void fake_ntc_celsius(double c) { ntc_mv = ntc_divider_mv(c); }
+void fake_ntc_mv(uint16_t mv) { ntc_mv = mv; }
 
-void fake_adc_set(uint8_t channel, uint16_t mv)
+void fake_estop(uint8_t tripped)
 {
-    if (channel < 3u) {
-        adc_mv[channel] = mv;
-    }
+    estop_level = tripped ? 1u : 0u;
+    estop_latched |= estop_level;
 }
 
-void fake_set_plant(fake_plant_fn fn, void *ctx)
+void fake_xadc_present(uint8_t on) { xadc_on = on; }
+void fake_tc_absent(void) { tc_word = 0xFFFFFFFFu; }
+
+void fake_tc_celsius(double c)
 {
-    plant = fn;
-    plant_ctx = ctx;
+    int32_t q = (int32_t)lround(c * 4.0);           /* 0.25 degC */
+    uint32_t internal = (uint32_t)(25 * 16) & 0xFFFu; /* cold junction 25 degC, 0.0625 degC */
+    tc_word = ((uint32_t)q << 18) | (internal << 4);
+}
+
+void fake_tc_fault(uint8_t bits)
+{
+    tc_word = 0x00010000u | (bits & 7u) | ((uint32_t)(25 * 16) << 4);
 }
 
 /* ------------------------------------------------------------------ hal.h */
@@ -100,12 +208,75 @@ void hal_pwm_set(uint16_t duty)
     pwm_sets++;
 }
 
-uint16_t hal_adc_mv(uint8_t channel)
+void hal_output_enable(uint8_t on) { out_enabled = on ? 1u : 0u; }
+
+uint16_t hal_adc_q4(uint8_t channel)
 {
-    if (channel == HAL_ADC_CURRENT && plant != NULL) {
-        return plant(pwm_duty, plant_ctx);
+    if (channel >= HAL_ADC_CHANNELS) {
+        return 0;
     }
-    return channel < 3u ? adc_mv[channel] : 0u;
+    if (adc_n[channel] == 0u) {
+        sample_adcs(); /* before the first advance: one conversion of the present state */
+    }
+    adc_last[channel] = (uint16_t)((adc_sum[channel] * 16u + adc_n[channel] / 2u) / adc_n[channel]);
+    adc_sum[channel] = 0;
+    adc_n[channel] = 0;
+    return adc_last[channel];
+}
+
+uint8_t hal_estop_tripped(void)
+{
+    uint8_t t = estop_level | estop_latched;
+    estop_latched = 0;
+    return t;
+}
+
+int8_t hal_xadc_start(uint8_t channel)
+{
+    if (!xadc_on) {
+        return -1;
+    }
+    xadc_ch = channel;
+    double code;
+    if (channel == HAL_XADC_WIRE) {
+        double v = sink.open ? sink.supply_v : i_a * sink.wire_ohm;
+        code = v * 1e6 / (ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0);
+    } else {
+        code = i_a * 1e9 / ELEC_ADS1115_SHUNT_NA_PER_LSB;
+    }
+    code = floor(code + noise() + 0.5);
+    xadc_code = (int16_t)(code > 32767.0 ? 32767.0 : code < -32768.0 ? -32768.0 : code);
+    return 0;
+}
+
+int8_t hal_xadc_read(int16_t *code)
+{
+    if (!xadc_on) {
+        return -1;
+    }
+    *code = xadc_code;
+    return 0;
+}
+
+int8_t hal_tc_read(uint32_t *word)
+{
+    *word = tc_word;
+    return 0;
+}
+
+void hal_eeprom_read(uint16_t addr, uint8_t *data, uint8_t len)
+{
+    for (uint8_t i = 0; i < len; i++) {
+        data[i] = eeprom[(addr + i) & 1023u];
+    }
+}
+
+void hal_eeprom_write(uint16_t addr, const uint8_t *data, uint8_t len)
+{
+    for (uint8_t i = 0; i < len; i++) {
+        eeprom[(addr + i) & 1023u] = data[i];
+        wdt_feeds++;
+    }
 }
 
 void hal_watchdog_feed(void) { wdt_feeds++; }

@@ -48,6 +48,16 @@ def main():
         b"\x03" + on + cmd(3, struct.pack("<H", 1500)) + bytes((2, 42, 1)) + ticks(80) + cmd(6)
         + cmd(5, struct.pack("<H", 5)) + ticks(50),
         b"\x05" + cmd(5, struct.pack("<H", 5)) + cmd(9) + cmd(2, b"\x02") + ticks(20),
+        # protocol v2: lease, calibration, heat model, e-stop, sensor faults
+        b"\x01" + cmd(8, struct.pack("<H", 50)) + on + cmd(3, struct.pack("<H", 800)) + ticks(80)
+        + cmd(7) + ticks(80),
+        b"\x01" + cmd(9, struct.pack("<hHH", 1500, 32000, 33000)) + cmd(10)
+        + cmd(11, struct.pack("<HHHH", 1000, 200, 300, 1000)) + cmd(12) + on
+        + cmd(3, struct.pack("<H", 2500)) + ticks(250) + ticks(250) + cmd(6),
+        b"\x01" + on + cmd(3, struct.pack("<H", 1000)) + ticks(20) + bytes((2, 44, 2)) + ticks(5)
+        + cmd(6) + bytes((2, 44, 0)) + cmd(6) + on + ticks(5),
+        b"\x01" + cmd(5, struct.pack("<H", 5)) + bytes((2, 44, 4 | 8 | 32)) + ticks(200)
+        + bytes((2, 44, 16)) + ticks(200),
     ]
     for s in seeds:
         (out / hashlib.sha1(s).hexdigest()).write_bytes(s)

@@ -20,6 +20,8 @@
 #define A_MCUSR 0x54    /* ATmega328P data-space address */
 #define BIT_EXTRF 0x02  /* MCUSR: external (reset pin) reset */
 #define A_WDTCSR 0x60
+#define A_SPL 0x5D
+#define A_SPH 0x5E
 #define A_UCSR0A 0xC0
 #define BIT_U2X0 0x02
 #define A_UBRR0L 0xC4
@@ -246,8 +248,25 @@ static void request_reset(avr_t *avr)
     }
 }
 
+/* An erased application section (0xFFFF words) is run through like NOPs into the bootloader,
+ * which optiboot then leaves again at once (no EXTRF) with an RCALL that pushes two bytes: on a
+ * blank chip the stack walks down by 2 bytes per pass, into the I/O registers after about 1000
+ * passes (1 s). What the chip does then is undefined; simavr stops on the write below address
+ * 0. Every pass through erased flash starts with a fresh stack here, so a blank Nano keeps
+ * cycling through its bootloader (as it visibly does: the LED keeps flashing) until it is
+ * flashed. */
+static void blank_slide_keeps_stack(avr_t *avr)
+{
+    avr_flashaddr_t pc = avr->pc;
+    if (pc + 1 < boot_base && avr->flash[pc] == 0xff && avr->flash[pc + 1] == 0xff) {
+        avr->data[A_SPL] = (uint8_t)(avr->ramend & 0xff);
+        avr->data[A_SPH] = (uint8_t)(avr->ramend >> 8);
+    }
+}
+
 enum boot_port_state boot_port_poll(avr_t *avr, int pty_master)
 {
+    blank_slide_keeps_stack(avr);
     struct pollfd pfd = {.fd = pty_master, .events = 0};
     if (reset_pending)
         request_reset(avr);

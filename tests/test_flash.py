@@ -1,0 +1,259 @@
+"""From a blank Arduino to a session: the real bootloaders in simavr, avrdude, the auto-reset.
+
+The emulated Nano (``smabench-sim --bootloader HEX``) runs optiboot built from Debian's source
+(``make -C firmware optiboot``) or Debian's old Nano bootloader, and every open of its pty resets
+it into the bootloader as the DTR pulse does. avrdude's STK500v1 talks to the bootloader's own
+code; what the tests check is measured on the device side: the resets and their causes (the
+harness's ``AVR reset at t=… ms (MCUSR=…)`` lines, AVR time), and what the flashed firmware
+answers over the protocol.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import queue
+import re
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from smabench.drivers.current_source import CurrentSource, LinkTimeout
+from smabench.drivers.mock.bench import BOOTLOADER_HEX, SIM_BIN, SIM_ELF
+
+REPO = Path(__file__).resolve().parent.parent
+APP_HEX = SIM_ELF.with_suffix(".hex")  # `make -C firmware elf` writes both
+OLD_NANO_HEX = Path(
+    "/usr/share/arduino/hardware/arduino/avr/bootloaders/atmega/ATmegaBOOT_168_atmega328.hex"
+)
+EXTRF, WDRF = 0x02, 0x08
+
+_MISSING = [str(p) for p in (SIM_BIN, SIM_ELF, APP_HEX, BOOTLOADER_HEX) if not p.is_file()]
+if shutil.which("avrdude") is None:
+    _MISSING.append("avrdude (apt-get install avrdude)")
+# under CI a missing build is a failure, never a skip
+requires_emulator = pytest.mark.skipif(
+    bool(_MISSING) and not os.environ.get("CI"),
+    reason=f"missing: {_MISSING} (make -C firmware elf sim; apt-get install avrdude "
+    "arduino-core-avr)",
+)
+RESET = re.compile(r"AVR reset at t=([\d.]+) ms \(MCUSR=0x([0-9a-f]{2})")
+
+
+class BootHarness:
+    """smabench-sim with a bootloader; ``resets()`` lists (AVR time ms, MCUSR) from its stderr."""
+
+    def __init__(self, bootloader: Path, app: Path | None) -> None:
+        self.proc = subprocess.Popen(
+            [str(SIM_BIN), "--bootloader", str(bootloader), str(app) if app else "--blank"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            bufsize=1,
+        )
+        first = self.proc.stdout.readline().strip()
+        assert first.startswith("PTY "), first
+        self.port = first[4:]
+        self.lines: queue.Queue[str] = queue.Queue()
+        self.seen: list[str] = []
+        threading.Thread(target=self._read_err, daemon=True).start()
+
+    def _read_err(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.put(line.strip())
+
+    def resets(self) -> list[tuple[float, int]]:
+        while True:
+            try:
+                self.seen.append(self.lines.get_nowait())
+            except queue.Empty:
+                break
+        return [(float(m[1]), int(m[2], 16)) for m in map(RESET.search, self.seen) if m]
+
+    def wait_resets(self, n: int, timeout_s: float = 10.0) -> list[tuple[float, int]]:
+        deadline = time.monotonic() + timeout_s
+        while len(self.resets()) < n and time.monotonic() < deadline:
+            time.sleep(0.02)
+        return self.resets()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.stdin.close()  # EOF ends the harness
+            try:
+                self.proc.wait(5.0)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+@pytest.fixture
+def harness_factory():
+    made: list[BootHarness] = []
+
+    def make(bootloader: Path = BOOTLOADER_HEX, app: Path | None = None) -> BootHarness:
+        h = BootHarness(bootloader, app)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+# ------------------------------------------------------------------ the CLI without a board
+def flash_cli(capsys, *args) -> tuple[int, str, str]:
+    """``smabench firmware flash ARGS`` in this process: (exit code, stdout, stderr)."""
+    from smabench.cli import main
+
+    code = main(["firmware", "flash", *map(str, args)])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_missing_avrdude_is_one_line_and_exit_2(capsys, monkeypatch, tmp_path):
+    port = tmp_path / "ttyFAKE"
+    port.touch()
+    monkeypatch.setenv("PATH", str(tmp_path))  # no avrdude on it
+    code, _, err = flash_cli(capsys, "--port", port, "--hex", APP_HEX)
+    assert code == 2
+    assert err.strip().splitlines() == [
+        "smabench firmware flash: avrdude not found: apt-get install avrdude"
+    ]
+
+
+def test_bad_port_and_bad_hex_are_refused_before_avrdude(capsys, monkeypatch, tmp_path):
+    code, _, err = flash_cli(capsys, "--port", tmp_path / "nothing", "--hex", APP_HEX)
+    assert code == 2 and "no such port" in err and len(err.strip().splitlines()) == 1
+    fake = tmp_path / "bin"  # an avrdude that must never be reached
+    fake.mkdir()
+    (fake / "avrdude").write_text("#!/bin/sh\necho called >> \"$0.log\"\nexit 1\n")
+    (fake / "avrdude").chmod(0o755)
+    monkeypatch.setenv("PATH", str(fake))
+    bad = tmp_path / "bad.hex"
+    bad.write_text("this is not intel hex\n")
+    port = tmp_path / "ttyFAKE"
+    port.touch()
+    code, _, err = flash_cli(capsys, "--port", port, "--hex", bad)
+    assert code == 2 and "bad.hex:1: not an Intel hex record" in err
+    assert not (fake / "avrdude.log").exists()
+
+
+def test_no_bootloader_answering_is_one_line_naming_both_baud_rates(capsys, monkeypatch, tmp_path):
+    fake = tmp_path / "bin"  # avrdude as on a port with no board: never in sync
+    fake.mkdir()
+    script = "#!/bin/sh\necho \"$@\" >> \"$0.log\"\n"
+    script += "echo 'avrdude error: programmer is not responding' >&2\nexit 1\n"
+    (fake / "avrdude").write_text(script)
+    (fake / "avrdude").chmod(0o755)
+    monkeypatch.setenv("PATH", str(fake))
+    port = tmp_path / "ttyFAKE"
+    port.touch()
+    hex_path = tmp_path / "app.hex"
+    hex_path.write_text(":020000000C945E\n:00000001FF\n")
+    code, out, err = flash_cli(capsys, "--port", port, "--hex", hex_path)
+    assert code == 1
+    assert len(err.strip().splitlines()) == 1 and "no bootloader answered" in err
+    calls = (fake / "avrdude.log").read_text().splitlines()
+    assert [c.split(" -b ")[1].split()[0] for c in calls] == ["115200", "57600"]
+    assert all(f"-U flash:w:{hex_path}:i" in c and "-c arduino" in c for c in calls)
+
+
+# ------------------------------------------------------------------ the emulated Nano
+@pytest.mark.emulator
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+@requires_emulator
+def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, tmp_path):
+    """Blank emulated Nano → smabench firmware flash → smabench run → rows in the CSV."""
+    from smabench.bench.headless import MockProcess
+
+    with MockProcess(["--firmware", "emulated", "--bootloader", "--blank"]) as mock:
+        port = mock.ports.driver
+        # blank: the bootloader runs, then the empty flash; nothing answers the protocol
+        blank = CurrentSource(port)
+        with pytest.raises(LinkTimeout):
+            blank.connect()
+        blank.close()
+
+        out = run_cli("firmware", "flash", "--port", port, "--hex", APP_HEX)
+        assert out.returncode == 0, out.stderr
+        assert "written and verified at 115200 baud" in out.stdout
+        m = re.search(r"firmware: (\S+) (\d+\.\d+\.\d+) \(protocol (\d+)", out.stdout)
+        assert m, out.stdout
+        name, version = m[1], m[2]
+
+        out = run_cli(
+            "run", "--port", port, "--sensor", mock.ports.sensor_tcp, "--load-kg", "2",
+            "--cycles", "1", "--current-a", "1.0", "--heat-s", "1", "--cool-timeout-s", "2",
+            "--out", tmp_path, "--session-id", "flashed", "--quiet",
+        )  # fmt: skip
+        assert out.returncode == 0, out.stderr
+    folder = tmp_path / "flashed"
+    meta = json.loads((folder / "session.json").read_text())
+    driver = meta["devices"]["current_driver"]
+    assert driver["name"] == name
+    assert ".".join(map(str, driver["firmware_version"])) == version
+    with open(folder / "samples.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) > 100  # 1 s heating + cooling at 200 Hz
+    heating = [float(r["current_A"]) for r in rows if float(r["current_set_A"] or 0) > 0]
+    assert heating and max(heating) > 0.9  # the flashed firmware drove the current it was set
+
+
+@pytest.mark.emulator
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+@requires_emulator
+def test_old_nano_bootloader_is_flashed_at_57600_after_115200_fails(run_cli, harness_factory):
+    if not OLD_NANO_HEX.is_file():
+        pytest.skip("apt-get install arduino-core-avr")
+    h = harness_factory(OLD_NANO_HEX)
+    out = run_cli("firmware", "flash", "--port", h.port, "--hex", APP_HEX)
+    assert out.returncode == 0, out.stderr
+    assert "115200 baud (optiboot)" in out.stdout  # tried first, and failed
+    assert "written and verified at 57600 baud" in out.stdout
+    assert "firmware: SMA-CD328" in out.stdout
+    # three opens of the port (115200, 57600, identify), three external resets on the device
+    resets = h.wait_resets(3)
+    assert [mcusr & EXTRF for _, mcusr in resets].count(EXTRF) >= 3
+
+
+@pytest.mark.emulator
+@pytest.mark.slow
+@pytest.mark.timeout(60)
+@requires_emulator
+def test_connect_waits_through_the_auto_reset(harness_factory):
+    """Each open resets the MCU into optiboot, which holds it ≈ 1.4 s (3 LED flashes, 1 s
+    watchdog) unless spoken to; the driver's handshake gets through on every (re)connect."""
+    h = harness_factory(BOOTLOADER_HEX, SIM_ELF)
+    # power-on: optiboot starts the application at once (no EXTRF)
+    assert h.resets() == []
+
+    # an open with nothing sent: the bootloader waits, then its watchdog starts the application
+    fd = os.open(h.port, os.O_RDWR | os.O_NOCTTY)
+    try:
+        resets = h.wait_resets(2, timeout_s=5.0)
+    finally:
+        os.close(fd)
+    (t_ext, c_ext), (t_wdt, c_wdt) = resets[:2]
+    assert c_ext & EXTRF and c_wdt & WDRF
+    assert 1000.0 <= t_wdt - t_ext <= 2000.0  # AVR ms: optiboot's wait before the application
+
+    for attempt in range(2):  # connect, then a second open: another reset, another handshake
+        source = CurrentSource(h.port)
+        try:
+            info = source.connect()
+        finally:
+            source.close()
+        assert info.name == "SMA-CD328"
+        resets = h.resets()
+        external = [t for t, c in resets if c & EXTRF]
+        assert len(external) == 2 + attempt, resets  # this open reset the board
+        # the application answered only after the bootloader handed over (watchdog reset)
+        assert any(c & WDRF and t > external[-1] for t, c in resets), resets

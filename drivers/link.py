@@ -149,6 +149,7 @@ class FramedLink:
         self._queued_slots: dict[str, Request] = {}
         self._current: Request | None = None
         self._preempt = False
+        self._in_read = False  # the owner thread waits in a blocking read
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._wake = threading.Event()
@@ -383,9 +384,14 @@ class FramedLink:
         )
 
     def _wake_owner(self) -> None:
+        """Wake the owner thread: at once when it waits in a read. Only then: pyserial's
+        ``cancel_read`` also aborts the next read, so cancelling at every call would starve the
+        receiver when a control loop posts setpoints fast."""
         self._wake.set()
+        with self._lock:
+            blocked, self._in_read = self._in_read, False
         ser = self._ser
-        if ser is not None and hasattr(ser, "cancel_read"):
+        if blocked and ser is not None and hasattr(ser, "cancel_read"):
             with contextlib.suppress(Exception):  # closed meanwhile: the owner is awake anyway
                 ser.cancel_read()
 
@@ -479,11 +485,20 @@ class FramedLink:
             with self._lock:
                 self._lost = True
             log.warning("link lost: nothing received for %.0f ms", 1e3 * (now - self._last_rx))
-        data = self._ser.read(1)
+        data = b""
+        waiting = self._ser.in_waiting
+        if waiting:
+            data = self._ser.read(waiting)
+        else:
+            with self._lock:  # nothing to send (or waiting for an ACK): block until bytes come
+                self._in_read = not self._queue or self._current is not None
+            if self._in_read:
+                data = self._ser.read(1)
+                with self._lock:
+                    self._in_read = False
+                if data and self._ser.in_waiting:
+                    data += self._ser.read(self._ser.in_waiting)
         if data:
-            n = self._ser.in_waiting
-            if n:
-                data += self._ser.read(n)
             self._dispatch(self._rx.feed(data))
 
     def _on_ack_timeout(self, cur: Request, now: float) -> None:

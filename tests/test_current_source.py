@@ -635,3 +635,21 @@ def test_auto_reconnect_waits_for_the_bootloader():
     assert cs.counters().retries >= 2  # the IDENTIFY after the reopen met the bootloader
     cs.ping()
     cs.close()
+
+
+def test_a_flood_of_setpoints_does_not_starve_the_receiver(cs):
+    """A loop posting setpoints as fast as it can must not keep the owner thread from reading
+    (pyserial's cancel_read aborts the next read: the link wakes the reader only when it
+    waits). Telemetry keeps arriving and the newest setpoint reaches the device."""
+    got = []
+    unsubscribe = cs.subscribe(got.append)
+    deadline = time.monotonic() + 10.0
+    k = 0
+    while len(got) < 40:
+        assert time.monotonic() < deadline, f"{len(got)} telemetry frames while flooding"
+        cs.set_current(0.001 * (k % 500))
+        k += 1
+    unsubscribe()
+    cs.set_current(0.25)
+    cs.wait_telemetry(lambda t: t.setpoint_a == pytest.approx(0.25), 1.0)
+    assert cs.counters().setpoints_superseded > 0

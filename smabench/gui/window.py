@@ -68,6 +68,7 @@ class MainWindow(QtWidgets.QMainWindow):
     """Everything the operator needs at the bench."""
 
     session_ended = QtCore.Signal(dict)
+    OPEN_LOOP_KEY = OPEN_LOOP_CURRENT.key
 
     def __init__(self, sessions_dir: str | Path = "sessions", mock_speed: float = 1.0) -> None:
         super().__init__()
@@ -131,7 +132,7 @@ class MainWindow(QtWidgets.QMainWindow):
         live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
         live.addWidget(self.loop_plot)
         live.addWidget(self.time_plots)
-        live.setSizes([500, 400])
+        live.setSizes([450, 450])
         self.replay = ReplayView()
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(live, "Live")
@@ -412,7 +413,8 @@ class MainWindow(QtWidgets.QMainWindow):
             return  # still building
         name = self.protocol.currentText()
         mode = self.selected_mode()
-        closed = mode != "open_loop"
+        live_controller = self.session_controller and self.state in IN_SESSION
+        closed = mode != "open_loop" or live_controller  # mid-run: the session's protocol
         for key in self.protocol_fields:
             setting = self.fields[key].setting
             self.experiment_form.setRowVisible(self.fields[key], setting.uses(name, closed))
@@ -420,8 +422,7 @@ class MainWindow(QtWidgets.QMainWindow):
             setting = self.fields[key].setting
             self.controller_form.setRowVisible(self.fields[key],
                                                closed and mode_uses(setting, mode))  # fmt: skip
-        self.controller_form.setRowVisible(self.fields[OPEN_LOOP_CURRENT.key],
-                                           self.session_controller)  # fmt: skip
+        self.controller_form.setRowVisible(self.fields[OPEN_LOOP_CURRENT.key], closed)
         for law, box in self.gain_boxes.items():
             uses = (law == "pid" and mode == "pid") or (law != "pid" and mode == "ffpid")
             self.controller_form.setRowVisible(box, uses)
@@ -585,7 +586,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def field_errors(self) -> list[str]:
         """Sentences for the visible fields that are not valid (empty: all good)."""
-        return [e for f in self.visible_fields() if (e := f.error())]
+        return [words.plain(e).rstrip(".") for f in self.visible_fields() if (e := f.error())]
 
     def settings_dict(self, allow_high_stress: bool = False) -> dict[str, Any]:
         """The start message from the fields (the schema's JSON shape; settings at their
@@ -682,6 +683,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.pending_start = None
         self.fire("start")
         self.session_controller = "controller" in settings
+        self._show_setting_fields()
         self.pending_settings = settings
         self._fresh_session = True
         self.link.start(settings)
@@ -975,7 +977,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.refresh_sessions()
         self.session_ended.emit(end)
         if lost:
-            self._lose(f"{reason} {text}")
+            self._lose(text)
 
     def _lose(self, text: str) -> None:
         """A device or the runtime is gone: message, link closed, buttons back to Connect."""
@@ -986,6 +988,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.pending_start = None
         self.health.setText("not connected")
         self.readout.setText("readouts: not connected")
+        self.times.setText("elapsed –   remaining –")
         self.fire("lost")
         self.say(text, error=True)
 

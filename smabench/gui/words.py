@@ -80,6 +80,7 @@ def _clean(text: str) -> str:
     text = re.sub(r"\((?:[^()]*--[^()]*)\)", "", text)
     text = re.sub(r"\s--[\w-]+(\s[\w|.,-]+)?", "", text)
     text = re.sub(r"\[Errno \d+\]\s*", "", text)
+    text = re.sub(r"\s*\((?:[a-z_]+\.)*[a-z_]+\)", "", text)  # a setting's key: (load_kg)
     text = re.sub(r"\s+", " ", text).strip(" :;,")
     return text
 

@@ -160,6 +160,8 @@ def test_every_command_has_help(run_cli):
         ["demo", "--help"],
         ["bench", "--help"],
         ["bench", "model", "--help"],
+        ["run", "--help"],
+        ["mock", "--help"],
     ):
         proc = run_cli(*cmd)
         assert proc.returncode == 0 and "usage:" in proc.stdout

@@ -290,6 +290,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.port and not args.sensor:
         raise ValueError("--port needs --sensor (tcp:HOST:PORT or rtu:DEVICE[:BAUD])")
     settings = settings_from_args(args)  # everything checked before a device is opened
+    stress = settings.stress()
+    if stress.needs_confirmation:  # allowed with --allow-high-stress, else refused above
+        print(f"note: {settings.load_kg:g} kg puts {stress.stress_mpa:.0f} MPa on the wire, "
+              f"above the wire's long-life stress of {stress.limit_mpa:.0f} MPa "
+              "(--allow-high-stress; recorded in session.json)", flush=True)
     mock = None
     mock_args: list[str] = []
     source = sensor = None

@@ -10,6 +10,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <sys/inotify.h>
 #include <termios.h>
 #include <unistd.h>
 
@@ -34,6 +35,8 @@ static const char *boot_hex;  /* --bootloader HEX */
 static int blank;             /* --blank */
 static uint32_t boot_base;    /* first address of the bootloader image, bytes */
 static int port_was_open;
+static int port_watch = -1; /* inotify on the slave device: every open and close, in order */
+static long port_handles;   /* open handles on the slave, as counted from the inotify events */
 static unsigned long port_opens;
 static int reset_pending;
 static void (*plain_run)(avr_t *); /* avr->run when nothing (watchdog, us) has swapped it */
@@ -223,10 +226,46 @@ void boot_setup(avr_t *avr, const char *app)
 void boot_port_init(avr_t *avr, int *pty_slave)
 {
     /* the termios set on the slave (raw, 115200) stay with the pty after the close */
+    const char *name = *pty_slave >= 0 ? ttyname(*pty_slave) : NULL;
+    char path[256] = "";
+    if (name)
+        snprintf(path, sizeof path, "%s", name);
     if (*pty_slave >= 0)
         close(*pty_slave);
     *pty_slave = -1;
     plain_run = avr->run;
+    /* A client that closes and reopens the port within one poll of POLLHUP would go unseen;
+     * inotify queues every open and close of the device node, however close together. */
+    port_watch = inotify_init1(IN_NONBLOCK | IN_CLOEXEC);
+    if (port_watch >= 0 &&
+        (!path[0] || inotify_add_watch(port_watch, path, IN_OPEN | IN_CLOSE) < 0)) {
+        close(port_watch);
+        port_watch = -1;
+    }
+    if (port_watch < 0)
+        fprintf(stderr, "smabench-sim: no inotify on %s: opens are seen by polling only\n", path);
+}
+
+/* Count opens and closes from the inotify queue; returns 1 if the handle count went from 0 up at
+ * least once (a DTR rising edge: the board resets), even if it is back at 0 by now. */
+static int port_watch_opened(void)
+{
+    char buf[4096] __attribute__((aligned(__alignof__(struct inotify_event))));
+    int rising = 0;
+    ssize_t n;
+    while ((n = read(port_watch, buf, sizeof buf)) > 0) {
+        for (char *q = buf; q < buf + n;) {
+            const struct inotify_event *ev = (const struct inotify_event *)q;
+            if (ev->mask & IN_OPEN) {
+                if (port_handles++ == 0)
+                    rising = 1;
+            } else if ((ev->mask & IN_CLOSE) && port_handles > 0) {
+                port_handles--;
+            }
+            q += sizeof *ev + ev->len;
+        }
+    }
+    return rising;
 }
 
 /* One-shot avr->run: the external reset happens inside avr_run, as the watchdog's does, so the
@@ -275,11 +314,10 @@ enum boot_port_state boot_port_poll(avr_t *avr, int pty_master)
     if (poll(&pfd, 1, 0) < 0)
         return port_was_open ? BOOT_PORT_OPEN : BOOT_PORT_CLOSED;
     int open = !(pfd.revents & POLLHUP);
-    if (open == port_was_open)
-        return open ? BOOT_PORT_OPEN : BOOT_PORT_CLOSED;
+    int rising = port_watch >= 0 ? port_watch_opened() : open && !port_was_open;
     port_was_open = open;
-    if (!open)
-        return BOOT_PORT_CLOSED;
+    if (!rising)
+        return open ? BOOT_PORT_OPEN : BOOT_PORT_CLOSED;
     /* the DTR pulse: what the client wrote before the reset never reaches the bootloader */
     uint8_t junk[256];
     while (read(pty_master, junk, sizeof junk) > 0)

@@ -31,7 +31,8 @@ int boot_args_ok(const char *app);
 void boot_setup(avr_t *avr, const char *app);
 
 /* Take over the pty for the auto-reset: closes the harness's own slave fd (*pty_slave = -1), so
- * the master reports POLLHUP whenever no client has the port open. */
+ * the master reports POLLHUP whenever no client has the port open, and watches the slave device
+ * with inotify, so a close and reopen between two polls still counts as a new open. */
 void boot_port_init(avr_t *avr, int *pty_slave);
 
 enum boot_port_state {

@@ -1,8 +1,10 @@
-"""Codec of the current-driver serial protocol, version 1 (``firmware/PROTOCOL.md``).
+"""Codec of the current-driver serial protocol, version 2 (``firmware/PROTOCOL.md``).
 
 Pure functions and small value types, no I/O: COBS framing, CRC-16/CCITT-FALSE, packet build and
 parse, the command table (struct formats of every host → device command, in one place), ACK,
-:class:`DeviceInfo` and :class:`Telemetry` decoding with SI units.
+:class:`DeviceInfo`, :class:`Calibration`, :class:`HeatModel` and :class:`Telemetry` with SI
+units. Measurements the device does not have (no thermocouple, a faulty NTC, no external ADC)
+decode as ``nan``.
 
 Wire format of one frame: ``COBS(seq, type, payload…, crc_lo, crc_hi) 0x00``. The decoded packet
 is 4 … 64 bytes; the CRC covers ``seq``, ``type`` and the payload. Shared test vectors:
@@ -11,11 +13,12 @@ is 4 … 64 bytes; the CRC covers ``seq``, ``type`` and the payload. Shared test
 
 from __future__ import annotations
 
+import math
 import struct
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 
-PROTOCOL_VERSION = 1
+PROTOCOL_VERSION = 2
 MAX_PAYLOAD = 60
 MIN_PACKET = 4  # seq, type, CRC
 MAX_PACKET = MAX_PAYLOAD + 4  # 64
@@ -27,7 +30,15 @@ HARD_LIMIT_A = 2.5
 HOST_TIMEOUT_DEFAULT_S = 0.250
 HOST_TIMEOUT_RANGE_S = (0.020, 5.000)
 TELEMETRY_PERIOD_RANGE_S = (0.005, 1.000)
-TELEMETRY_LEN = 20
+LEASE_DEFAULT_S = 0.250
+LEASE_RANGE_S = (0.020, 5.000)
+TELEMETRY_LEN = 29
+TEMP_NONE = 0x7FFF  # i16 temperatures: not available / fault
+U16_NONE = 0xFFFF  # u16 measurements: not available
+CAL_GAIN_ONE = 32768  # Q15
+CAL_GAIN_RANGE = (0.5, 1.5)
+HEAT_RESISTANCE_RANGE_OHM = (0.05, 20.0)
+HEAT_MAX_TEMPERATURE_RANGE_C = (30.0, 400.0)
 BAUDRATE = 115200
 
 
@@ -41,6 +52,11 @@ class MsgType(IntEnum):
     SET_TELEMETRY = 0x05
     CLEAR_FAULTS = 0x06
     PING = 0x07
+    SET_LEASE = 0x08
+    SET_CALIBRATION = 0x09
+    GET_CALIBRATION = 0x0A
+    SET_HEAT_MODEL = 0x0B
+    GET_HEAT_MODEL = 0x0C
     ACK = 0x80
     TELEMETRY = 0x90
 
@@ -55,6 +71,7 @@ class Status(IntEnum):
     FAULT_ACTIVE = 4
     VERSION_MISMATCH = 5
     CLAMPED = 6
+    OUTPUT_ON = 7  # refused while the output is enabled (EEPROM writes)
 
 
 class Flag(IntFlag):
@@ -66,14 +83,38 @@ class Flag(IntFlag):
     HOST_TIMEOUT = 0x0008
     WATCHDOG_RESET = 0x0010
     LIMIT_ACTIVE = 0x0020
+    LEASE_EXPIRED = 0x0040
+    OVERTEMP = 0x0080
+    ESTOP = 0x0100
+    NTC_FAULT = 0x0200
+    TC_FAULT = 0x0400
+    VSENSE_FAULT = 0x0800
+    CAL_DEFAULT = 0x1000
+    DISSIPATION = 0x2000
 
 
-LATCHED_FAULTS = Flag.OVERCURRENT | Flag.OPEN_WIRE
+class TcStatus(IntFlag):
+    """Thermocouple status byte (MAX31855 fault bits D2..D0, and ABSENT)."""
+
+    OC = 0x01  # open circuit
+    SCG = 0x02  # short to GND
+    SCV = 0x04  # short to VCC
+    ABSENT = 0x80  # no chip answered
+
+
+LATCHED_FAULTS = Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.OVERTEMP | Flag.ESTOP
+EVENTS = Flag.HOST_TIMEOUT | Flag.WATCHDOG_RESET | Flag.LEASE_EXPIRED
 FAULT_TEXT = {
     Flag.OVERCURRENT: "overcurrent (measured current above limit + 20 % for 5 ms)",
-    Flag.OPEN_WIRE: "open wire (duty above 50 % with less than 20 mA for 50 ms)",
+    Flag.OPEN_WIRE: "open wire (setpoint ≥ 100 mA with less than 20 mA for 50 ms)",
     Flag.HOST_TIMEOUT: "host timeout (no valid frame within the host timeout; output turned off)",
     Flag.WATCHDOG_RESET: "watchdog reset (the device was reset by its hardware watchdog)",
+    Flag.LEASE_EXPIRED: "setpoint lease expired (no SET_CURRENT within the lease; output off)",
+    Flag.OVERTEMP: "over-temperature (energy budget or thermocouple above the wire's maximum)",
+    Flag.ESTOP: "e-stop (the hardware e-stop input tripped)",
+    Flag.NTC_FAULT: "ambient sensor fault (NTC open or shorted)",
+    Flag.TC_FAULT: "thermocouple fault (open, or shorted to GND or VCC)",
+    Flag.VSENSE_FAULT: "wire-voltage ADC not answering",
 }
 
 
@@ -305,7 +346,22 @@ COMMANDS: dict[MsgType, Command] = {
         ),
         Command(MsgType.SET_TELEMETRY, "<H", ("period_ms",), "0 = off, else 5 … 1000 ms"),
         Command(MsgType.CLEAR_FAULTS, "<", (), "clear latched faults; output stays off"),
-        Command(MsgType.PING, "<", (), "feeds the host watchdog"),
+        Command(MsgType.PING, "<", (), "feeds the host watchdog (never the lease)"),
+        Command(MsgType.SET_LEASE, "<H", ("lease_ms",), "setpoint lease 20 … 5000 ms"),
+        Command(
+            MsgType.SET_CALIBRATION,
+            "<hHH",
+            ("current_offset_ua", "current_gain_q15", "voltage_gain_q15"),
+            "calibration into EEPROM; gains 0.5 … 1.5 (Q15); refused while enabled",
+        ),
+        Command(MsgType.GET_CALIBRATION, "<", (), "reply data: the SET_CALIBRATION payload"),
+        Command(
+            MsgType.SET_HEAT_MODEL,
+            "<HHHH",
+            ("resistance_mohm", "capacity_dmj_k", "conductance_cmw_k", "max_temperature_dc"),
+            "wire heat model into EEPROM (mΩ, 0.1 mJ/K, 0.01 mW/K, 0.1 °C); refused while enabled",
+        ),
+        Command(MsgType.GET_HEAT_MODEL, "<", (), "reply data: the SET_HEAT_MODEL payload"),
     )
 }
 
@@ -368,6 +424,109 @@ def ping() -> tuple[MsgType, bytes]:
     return MsgType.PING, b""
 
 
+def set_lease(lease_s: float) -> tuple[MsgType, bytes]:
+    """SET_LEASE; the setpoint lease in s (0.020 … 5.000 s)."""
+    lo, hi = LEASE_RANGE_S
+    if not lo <= lease_s <= hi:
+        raise ValueError(f"lease {lease_s} s outside {lo} … {hi} s")
+    return MsgType.SET_LEASE, command_payload(MsgType.SET_LEASE, _ms(lease_s))
+
+
+def set_calibration(cal: Calibration) -> tuple[MsgType, bytes]:
+    """SET_CALIBRATION (written to the device's EEPROM; refused while the output is on)."""
+    return MsgType.SET_CALIBRATION, cal.to_data()
+
+
+def get_calibration() -> tuple[MsgType, bytes]:
+    return MsgType.GET_CALIBRATION, b""
+
+
+def set_heat_model(model: HeatModel) -> tuple[MsgType, bytes]:
+    """SET_HEAT_MODEL (written to the device's EEPROM; refused while the output is on)."""
+    return MsgType.SET_HEAT_MODEL, model.to_data()
+
+
+def get_heat_model() -> tuple[MsgType, bytes]:
+    return MsgType.GET_HEAT_MODEL, b""
+
+
+def _q15(gain: float, name: str) -> int:
+    lo, hi = CAL_GAIN_RANGE
+    if not lo <= gain <= hi:
+        raise ValueError(f"{name} {gain} outside {lo} … {hi}")
+    return round(gain * CAL_GAIN_ONE)
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Calibration constants kept in the device's EEPROM.
+
+    The fast-path current is ``(raw − current_offset_a) · current_gain`` (the gain also scales
+    the precise shunt channel); the Kelvin wire voltage is ``raw · voltage_gain``."""
+
+    current_offset_a: float = 0.0  # A, −0.032767 … 0.032767 (sent in µA)
+    current_gain: float = 1.0  # 0.5 … 1.5 (sent in Q15)
+    voltage_gain: float = 1.0  # 0.5 … 1.5 (sent in Q15)
+
+    def to_data(self) -> bytes:
+        offset_ua = round(self.current_offset_a * 1e6)
+        if not -32767 <= offset_ua <= 32767:
+            raise ValueError(f"current offset {self.current_offset_a} A outside ±0.032767 A")
+        return COMMANDS[MsgType.SET_CALIBRATION].pack(
+            offset_ua,
+            _q15(self.current_gain, "current gain"),
+            _q15(self.voltage_gain, "voltage gain"),
+        )
+
+    @classmethod
+    def from_data(cls, data: bytes) -> Calibration:
+        offset_ua, ig, vg = COMMANDS[MsgType.SET_CALIBRATION].unpack(bytes(data))
+        return cls(offset_ua / 1e6, ig / CAL_GAIN_ONE, vg / CAL_GAIN_ONE)
+
+
+@dataclass(frozen=True)
+class HeatModel:
+    """The device's wire heat model for its energy budget (kept in EEPROM).
+
+    ``C·dT/dt = I²·R − G·(T − T_ambient)``; the output trips when T reaches
+    ``max_temperature_c``. Conservative values (R at its hottest, no latent heat, the lowest
+    convection) make the model run hotter than the wire. Defaults: the bench's 55 mm of 0.38 mm
+    Flexinol (``firmware/core/core.h``)."""
+
+    resistance_ohm: float = 0.550  # Ω (sent in mΩ)
+    heat_capacity_j_per_k: float = 0.0336  # J/K (sent in 0.1 mJ/K)
+    conductance_w_per_k: float = 0.0059  # W/K (sent in 0.01 mW/K)
+    max_temperature_c: float = 180.0  # °C (sent in 0.1 °C)
+
+    def to_data(self) -> bytes:
+        r_lo, r_hi = HEAT_RESISTANCE_RANGE_OHM
+        t_lo, t_hi = HEAT_MAX_TEMPERATURE_RANGE_C
+        if not r_lo <= self.resistance_ohm <= r_hi:
+            raise ValueError(f"resistance {self.resistance_ohm} Ω outside {r_lo} … {r_hi} Ω")
+        if not t_lo <= self.max_temperature_c <= t_hi:
+            raise ValueError(
+                f"maximum temperature {self.max_temperature_c} °C outside {t_lo} … {t_hi} °C"
+            )
+        c = round(self.heat_capacity_j_per_k * 1e4)
+        g = round(self.conductance_w_per_k * 1e5)
+        if not 1 <= c <= 0xFFFF:
+            raise ValueError(
+                f"heat capacity {self.heat_capacity_j_per_k} J/K outside 0.0001 … 6.5535 J/K"
+            )
+        if not 1 <= g <= 0xFFFF:
+            raise ValueError(
+                f"conductance {self.conductance_w_per_k} W/K outside 0.00001 … 0.65535 W/K"
+            )
+        return COMMANDS[MsgType.SET_HEAT_MODEL].pack(
+            round(self.resistance_ohm * 1e3), c, g, round(self.max_temperature_c * 10)
+        )
+
+    @classmethod
+    def from_data(cls, data: bytes) -> HeatModel:
+        r, c, g, t = COMMANDS[MsgType.SET_HEAT_MODEL].unpack(bytes(data))
+        return cls(r / 1e3, c / 1e4, g / 1e5, t / 10.0)
+
+
 # ---------------------------------------------------------------------------- device → host
 @dataclass(frozen=True)
 class Ack:
@@ -425,55 +584,111 @@ class DeviceInfo:
         return ".".join(map(str, self.firmware_version))
 
 
-_TELEMETRY = struct.Struct("<IHHHhHHHH")
+_TELEMETRY = struct.Struct("<IHHHhHHHHhhHHB")
 assert _TELEMETRY.size == TELEMETRY_LEN
+NAN = float("nan")
 
 
-@dataclass(frozen=True)
+def _u16_or_nan(raw: int, scale: float) -> float:
+    return NAN if raw == U16_NONE else raw * scale
+
+
+def _temp_or_nan(raw: int) -> float:
+    return NAN if raw == TEMP_NONE else raw / 100.0
+
+
+def _u16_raw(value: float, per_unit: float) -> int:
+    return U16_NONE if math.isnan(value) else min(0xFFFE, max(0, round(value * per_unit)))
+
+
+def _temp_raw(value: float) -> int:
+    return TEMP_NONE if math.isnan(value) else min(32766, max(-32768, round(value * 100)))
+
+
+@dataclass(frozen=True, eq=False)
 class Telemetry:
-    """One TELEMETRY frame in SI units."""
+    """One TELEMETRY frame in SI units; ``nan`` where the device has no value.
+
+    Two frames are equal when they encode to the same payload (``host_time`` aside)."""
 
     t_ms: int  # device time, ms since reset (u32, wraps after 49.7 days)
-    current_a: float  # measured current, A
-    voltage_v: float  # wire voltage, V
-    duty: float  # PWM duty, 0 … 1
-    ambient_c: float  # ambient temperature, °C
+    current_a: float  # measured current (fast path, calibrated), A
+    voltage_v: float  # Kelvin-sensed wire voltage, V (0.1 mV); nan: no external ADC
+    duty: float  # setpoint PWM duty, 0 … 1
+    ambient_c: float  # ambient temperature, °C; nan: NTC open or shorted (NTC_FAULT)
     flags: Flag
-    setpoint_a: float  # current setpoint after clamping, A
+    setpoint_a: float  # current setpoint after clamping, A (0 after a lease expiry)
     crc_errors: int  # device's rx CRC error counter (saturating u16)
     frame_errors: int  # device's rx frame error counter (saturating u16)
+    wire_model_c: float = NAN  # the energy budget's (conservative) wire temperature, °C
+    thermocouple_c: float = NAN  # measured wire temperature (MAX31855), °C; nan: absent/fault
+    precise_current_a: float = NAN  # shunt current by the external ADC, A (0.1 mA)
+    supply_v: float = NAN  # wire supply at the driver, V
+    thermocouple_status: TcStatus = TcStatus.ABSENT
     host_time: float = field(default=0.0, compare=False)  # host time.monotonic() on reception, s
 
     @classmethod
     def from_payload(cls, payload: bytes, host_time: float = 0.0) -> Telemetry:
         if len(payload) != TELEMETRY_LEN:
             raise ProtocolError(f"TELEMETRY payload of {len(payload)} bytes, want {TELEMETRY_LEN}")
-        t, ma, mv, duty, amb, flags, sp, crc_e, fr_e = _TELEMETRY.unpack(payload)
+        (t, ma, dmv, duty, amb, flags, sp, crc_e, fr_e, model, tc, dma, supply_mv,
+         tc_status) = _TELEMETRY.unpack(payload)  # fmt: skip
         return cls(
             t_ms=t,
             current_a=ma / 1000.0,
-            voltage_v=mv / 1000.0,
+            voltage_v=_u16_or_nan(dmv, 1e-4),
             duty=duty / 65535.0,
-            ambient_c=amb / 100.0,
+            ambient_c=_temp_or_nan(amb),
             flags=Flag(flags),
             setpoint_a=sp / 1000.0,
             crc_errors=crc_e,
             frame_errors=fr_e,
+            wire_model_c=_temp_or_nan(model),
+            thermocouple_c=_temp_or_nan(tc),
+            precise_current_a=_u16_or_nan(dma, 1e-4),
+            supply_v=_u16_or_nan(supply_mv, 1e-3),
+            thermocouple_status=TcStatus(tc_status),
             host_time=host_time,
         )
 
     def to_payload(self) -> bytes:
         return _TELEMETRY.pack(
             self.t_ms & 0xFFFFFFFF,
-            round(self.current_a * 1000),
-            round(self.voltage_v * 1000),
-            round(self.duty * 65535),
-            round(self.ambient_c * 100),
+            min(0xFFFF, max(0, round(self.current_a * 1000))),
+            _u16_raw(self.voltage_v, 1e4),
+            min(0xFFFF, max(0, round(self.duty * 65535))),
+            _temp_raw(self.ambient_c),
             int(self.flags) & 0xFFFF,
-            round(self.setpoint_a * 1000),
+            min(0xFFFF, max(0, round(self.setpoint_a * 1000))),
             min(self.crc_errors, 0xFFFF),
             min(self.frame_errors, 0xFFFF),
+            _temp_raw(self.wire_model_c),
+            _temp_raw(self.thermocouple_c),
+            _u16_raw(self.precise_current_a, 1e4),
+            _u16_raw(self.supply_v, 1e3),
+            int(self.thermocouple_status) & 0xFF,
         )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Telemetry):
+            return NotImplemented
+        return self.to_payload() == other.to_payload()
+
+    def __hash__(self) -> int:
+        return hash(self.to_payload())
+
+    @property
+    def temperature_c(self) -> float:
+        """The measured wire temperature (thermocouple), °C, ``nan`` when there is none: the
+        sessions' ``temperature_C`` column."""
+        return self.thermocouple_c
+
+    @property
+    def resistance_ohm(self) -> float:
+        """Wire resistance from the Kelvin voltage and the precise current, Ω (nan if unknown)."""
+        if math.isnan(self.voltage_v) or not self.precise_current_a > 0.05:
+            return NAN
+        return self.voltage_v / self.precise_current_a
 
     @property
     def enabled(self) -> bool:

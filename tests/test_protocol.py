@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import math
 import random
 import struct
 import subprocess
@@ -9,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+
 from smabench.drivers import protocol as p
 
 REPO = Path(__file__).resolve().parent.parent
@@ -160,8 +163,8 @@ def test_identify_reply_vector():
     ack = p.Ack.from_payload(payload)
     assert (ack.type, ack.status) == (p.MsgType.IDENTIFY, p.Status.OK)
     info = p.DeviceInfo.from_data(ack.data)
-    assert info == p.DeviceInfo(1, (1, 0, 0), 2.5, "SMA-CD328")
-    assert info.firmware == "1.0.0"
+    assert info == p.DeviceInfo(2, (2, 0, 0), 2.5, "SMA-CD328")
+    assert info.firmware == "2.0.0"
     assert info.to_data() == ack.data
 
 
@@ -248,13 +251,40 @@ def test_command_table_matches_spec():
         p.MsgType.SET_TELEMETRY: 2,
         p.MsgType.CLEAR_FAULTS: 0,
         p.MsgType.PING: 0,
+        p.MsgType.SET_LEASE: 2,
+        p.MsgType.SET_CALIBRATION: 6,
+        p.MsgType.GET_CALIBRATION: 0,
+        p.MsgType.SET_HEAT_MODEL: 8,
+        p.MsgType.GET_HEAT_MODEL: 0,
     }
     assert {t: c.size for t, c in p.COMMANDS.items()} == sizes
 
 
+def test_command_table_matches_firmware_header():
+    """proto.h and the codec name the same types, status codes, flags and sizes."""
+    text = (REPO / "firmware/core/proto.h").read_text()
+    defs = {}
+    for line in text.splitlines():
+        tok = line.split()
+        if len(tok) >= 3 and tok[0] == "#define" and tok[2].rstrip("u").isalnum():
+            with contextlib.suppress(ValueError):
+                defs[tok[1]] = int(tok[2].rstrip("u"), 0)
+    assert defs["PROTOCOL_VERSION"] == p.PROTOCOL_VERSION
+    assert defs["TELEMETRY_LEN"] == p.TELEMETRY_LEN
+    for t in p.MsgType:
+        assert defs[f"MSG_{t.name}"] == t.value, t
+    for st in p.Status:
+        assert defs[f"ST_{st.name}"] == st.value, st
+    for f in p.Flag:
+        assert defs[f"FLAG_{f.name}"] == f.value, f
+    for b in p.TcStatus:
+        assert defs[f"TC_{b.name}"] == b.value, b
+    assert defs["LEASE_DEFAULT_MS"] == round(p.LEASE_DEFAULT_S * 1000)
+
+
 def test_unit_builders():
     M = p.MsgType
-    assert p.identify() == (M.IDENTIFY, b"\x01")
+    assert p.identify() == (M.IDENTIFY, b"\x02")
     assert p.enable(True) == (M.ENABLE, b"\x01")
     assert p.enable(False) == (M.ENABLE, b"\x00")
     assert p.set_current(1.0) == (M.SET_CURRENT, b"\xe8\x03")
@@ -264,7 +294,12 @@ def test_unit_builders():
     assert p.set_telemetry(0) == (M.SET_TELEMETRY, b"\x00\x00")
     assert p.clear_faults() == (M.CLEAR_FAULTS, b"")
     assert p.ping() == (M.PING, b"")
+    assert p.set_lease(0.25) == (M.SET_LEASE, b"\xfa\x00")
+    assert p.get_calibration() == (M.GET_CALIBRATION, b"")
+    assert p.get_heat_model() == (M.GET_HEAT_MODEL, b"")
     for bad in (
+        lambda: p.set_lease(0.019),
+        lambda: p.set_lease(5.001),
         lambda: p.set_current(-0.1),
         lambda: p.set_limits(3.0, 0.25),
         lambda: p.set_limits(1.0, 0.01),
@@ -278,26 +313,98 @@ def test_unit_builders():
 
 
 def test_telemetry_parse():
-    payload = struct.pack("<IHHHhHHHH", 123456, 1000, 4000, 32768, -525, 0x21, 1200, 3, 65535)
+    payload = struct.pack(
+        "<IHHHhHHHHhhHHB",
+        123456, 1000, 4400, 32768, -525, 0x21, 1200, 3, 65535, 6350, 7125, 10003, 4940, 0,
+    )  # fmt: skip
     t = p.Telemetry.from_payload(payload, host_time=5.0)
     assert t.t_ms == 123456
     assert t.current_a == pytest.approx(1.0)
-    assert t.voltage_v == pytest.approx(4.0)
+    assert t.voltage_v == pytest.approx(0.44)  # 0.1 mV units
     assert t.duty == pytest.approx(0.5, abs=1e-4)
     assert t.ambient_c == pytest.approx(-5.25)
     assert t.flags == p.Flag.ENABLED | p.Flag.LIMIT_ACTIVE
     assert t.enabled and not t.latched_faults
     assert t.setpoint_a == pytest.approx(1.2)
     assert (t.crc_errors, t.frame_errors) == (3, 65535)
+    assert t.wire_model_c == pytest.approx(63.5)
+    assert t.thermocouple_c == pytest.approx(71.25) and t.temperature_c == t.thermocouple_c
+    assert t.precise_current_a == pytest.approx(1.0003)
+    assert t.supply_v == pytest.approx(4.94)
+    assert t.thermocouple_status == p.TcStatus(0)
+    assert t.resistance_ohm == pytest.approx(0.44 / 1.0003)
     assert t.to_payload() == payload
     with pytest.raises(p.ProtocolError):
         p.Telemetry.from_payload(payload[:-1])
+
+
+def test_telemetry_missing_values_are_nan_not_numbers():
+    """An open NTC, no thermocouple and no external ADC decode as nan (never −92 °C or 0 V)."""
+    good, _ = load_vectors(VECTOR_DIR / "frames.txt")
+    (_, _, _, payload, _) = next(v for v in good if v[0] == "telemetry_sensors_missing")
+    raw = struct.unpack("<IHHHhHHHHhhHHB", payload)
+    assert raw[2] == p.U16_NONE and raw[4] == p.TEMP_NONE and raw[10] == p.TEMP_NONE
+    t = p.Telemetry.from_payload(payload)
+    for name in ("voltage_v", "ambient_c", "thermocouple_c", "precise_current_a", "resistance_ohm"):
+        assert math.isnan(getattr(t, name)), name
+    assert t.flags & p.Flag.NTC_FAULT and t.flags & p.Flag.TC_FAULT
+    assert t.thermocouple_status == p.TcStatus.OC
+    assert t.wire_model_c == pytest.approx(40.0)
+    assert t == p.Telemetry.from_payload(t.to_payload())  # equal by payload, nan and all
+    assert t.to_payload() == payload
+
+
+def test_telemetry_defaults_for_devices_without_the_new_fields():
+    t = p.Telemetry(0, 1.0, 0.5, 0.5, 22.0, p.Flag.ENABLED, 1.0, 0, 0)
+    back = p.Telemetry.from_payload(t.to_payload())
+    assert math.isnan(back.thermocouple_c) and math.isnan(back.wire_model_c)
+    assert back.thermocouple_status == p.TcStatus.ABSENT
+    assert back == t
+
+
+def test_calibration_and_heat_model_roundtrip_and_ranges():
+    cal = p.Calibration(current_offset_a=-0.0025, current_gain=1 / 1.03, voltage_gain=1.01)
+    data = cal.to_data()
+    assert struct.unpack("<hHH", data) == (-2500, round(32768 / 1.03), round(32768 * 1.01))
+    back = p.Calibration.from_data(data)
+    assert back.current_offset_a == pytest.approx(-0.0025)
+    assert back.current_gain == pytest.approx(1 / 1.03, abs=1 / 32768)
+    assert p.set_calibration(cal) == (p.MsgType.SET_CALIBRATION, data)
+    for bad in (
+        p.Calibration(current_gain=0.49),
+        p.Calibration(voltage_gain=1.51),
+        p.Calibration(current_offset_a=0.04),
+    ):
+        with pytest.raises(ValueError):
+            bad.to_data()
+    heat = p.HeatModel()
+    assert struct.unpack("<HHHH", heat.to_data()) == (550, 336, 590, 1800)  # = core.h defaults
+    assert p.HeatModel.from_data(heat.to_data()) == heat
+    for bad in (
+        p.HeatModel(max_temperature_c=29.0),
+        p.HeatModel(resistance_ohm=0.01),
+        p.HeatModel(heat_capacity_j_per_k=7.0),
+        p.HeatModel(conductance_w_per_k=0.0),
+    ):
+        with pytest.raises(ValueError):
+            bad.to_data()
+
+
+def test_heat_model_defaults_match_firmware():
+    text = (REPO / "firmware/core/core.h").read_text()
+    want = {"HEAT_DEFAULT_R_MOHM": 550, "HEAT_DEFAULT_C": 336, "HEAT_DEFAULT_G": 590,
+            "HEAT_DEFAULT_TMAX_DC": 1800}  # fmt: skip
+    for name, value in want.items():
+        assert f"#define {name} {value}u" in text, name
 
 
 def test_fault_text():
     assert p.fault_text(p.Flag.ENABLED | p.Flag.LIMIT_ACTIVE) == ""
     text = p.fault_text(p.Flag.OPEN_WIRE | p.Flag.HOST_TIMEOUT)
     assert "open wire" in text and "host timeout" in text
+    text = p.fault_text(p.Flag.LEASE_EXPIRED | p.Flag.OVERTEMP | p.Flag.ESTOP | p.Flag.NTC_FAULT)
+    assert all(w in text for w in ("lease", "over-temperature", "e-stop", "NTC"))
+    assert p.LATCHED_FAULTS & p.Flag.ESTOP and p.LATCHED_FAULTS & p.Flag.OVERTEMP
 
 
 def test_ack_parse():

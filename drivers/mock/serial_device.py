@@ -231,7 +231,7 @@ class SerialDevice:
         self._to_device.clear()
         if self.device_ms < self.boot_end_ms:
             return True
-        self.firmware = MockFirmware(self.device_ms)
+        self.firmware = MockFirmware(self.device_ms, eeprom=self.firmware.eeprom)  # EEPROM kept
         self.boot_end_ms = None
         log.debug("firmware started at t=%.0f ms", self.device_ms)
         return False

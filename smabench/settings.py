@@ -27,7 +27,13 @@ API for front ends (kept stable; the GUI builds its fields from it)
   "protocol": {…}, "controller": {…, "gains": [kp, ki, kd] | {…} | null}}``), checked; unknown
   keys refused. ``to_mapping(values)`` is its inverse.
 - ``stress_check(load_kg, wire_preset, long_life_stress_mpa=None) -> StressCheck``:
-  ``.needs_confirmation``, ``.stress_mpa``, ``.limit_mpa``, ``.message`` (words for a dialog).
+  ``.needs_confirmation``, ``.stress_mpa``, ``.limit_mpa``, ``.message`` (words for a dialog);
+  a confirmed load is sent with ``allow_high_stress: true``.
+- ``check_run(values, device_limit_a=None) -> StressCheck``: every rule across settings
+  (load ≤ max load, currents ≤ the current limit, position min < max, the protocol against the
+  loop, the stress), raising :class:`SettingError` (``.key``, ``.value``, ``.reason``).
+- ``SETTINGS`` (key → Setting), ``get(key)``, ``GAIN_COMPONENTS``, ``PROTOCOL_NAMES``,
+  ``REFERENCE_NAMES``, ``OPEN_LOOP_NAMES``, ``CONTROLLER_MODES``.
 
 Nothing else is needed by a front end. Keys are the JSON paths: ``load_kg``,
 ``protocol.current_a``, ``controller.ffpid_hold_gains.ki``.
@@ -594,7 +600,7 @@ def values_from_mapping(cfg: Mapping[str, Any], complete: bool = True) -> dict[s
     ``{"load_kg": 2, "protocol": {"name": "sine", …}, "controller": {"mode": "pid",
     "gains": [kp, ki, kd] | {"kp": …} | null, …} | null}``; unknown keys are refused. With
     ``complete`` the missing settings take their defaults (a required one missing is refused);
-    the controller's settings only when a controller is given."""
+    the controller's only when a controller is given (its law then defaults to ``ffpid``)."""
     if not isinstance(cfg, Mapping):
         raise SettingError("settings", cfg, "settings must be a JSON object")
     flat: dict[str, Any] = {}
@@ -613,6 +619,8 @@ def values_from_mapping(cfg: Mapping[str, Any], complete: bool = True) -> dict[s
                     raise SettingError(key, sv, "unknown setting {name}")
         elif name in SETTINGS and name.split(".")[0] not in _GROUPED:
             flat[name] = v
+        elif name in _GROUPED:
+            raise SettingError(name, v, f"{name} must be an object of settings, got {v!r}")
         else:
             raise SettingError(name, v, "unknown setting {name}")
     values = {k: check_value(k, v) for k, v in flat.items()}

@@ -36,6 +36,10 @@ def cmd_mock(args: argparse.Namespace) -> int:
     from smabench.drivers.mock.bench import MockBench
     from smabench.physics.effects import Effects
 
+    try:  # the hanging load's range is the run setting's (a simulated wire needs no confirmation)
+        settings_schema.check_value("load_kg", args.load_kg)
+    except settings_schema.SettingError as exc:
+        raise ValueError(exc.naming("--load-kg")) from None
     bench = MockBench(
         args.load_kg,
         speed=args.speed,

@@ -283,9 +283,15 @@ def analyze_cycle(
     i0, i1, i2 = bounds
     heat = tangent_branch(t_c[i0 : i1 + 1], strain[i0 : i1 + 1], "heating", min_change)
     cool = tangent_branch(t_c[i1 : i2 + 1], strain[i1 : i2 + 1], "cooling", min_change)
-    gh_t, gh_e = heat.t_c, heat.strain
-    gc_t, gc_e = cool.t_c, cool.strain
-    e_start, e_top, e_end = float(gh_e[0]), float(gh_e[-1]), float(gc_e[-1])
+    # values at the turning points: means over a window centred on them (half a group each
+    # side), the same window for a cycle's end and the next one's start, so that the residual
+    # strains add up exactly to the change over the record
+    w = max(0, min(i1 - i0, i2 - i1) // GROUPS_PER_BRANCH // 2)
+
+    def at(x: np.ndarray, i: int) -> float:
+        return float(np.mean(x[max(0, i - w) : i + w + 1]))
+
+    e_start, e_top, e_end = at(strain, i0), at(strain, i1), at(strain, i2)
     As = heat.start[0] if heat.start else math.nan
     Af = heat.finish[0] if heat.finish else math.nan
     Ms = cool.start[0] if cool.start else math.nan
@@ -301,9 +307,9 @@ def analyze_cycle(
         e_mid = 0.25 * (eAs + eAf + eMs + eMf)
         hyst = float(heat.transformation(e_mid) - cool.transformation(e_mid))
     props = {
-        "LCT_C": float(gh_t[0]),
-        "UCT_C": float(max(gh_t.max(), gc_t.max())),
-        "LCT_end_C": float(gc_t[-1]),
+        "LCT_C": at(t_c, i0),
+        "UCT_C": at(t_c, i1),
+        "LCT_end_C": at(t_c, i2),
         "As_C": As,
         "Af_C": Af,
         "Ms_C": Ms,

@@ -83,6 +83,7 @@ def characterize_session(
     source: str | None = None
     stress: list[float] = []
     files = sample_files(p) if p.is_dir() else [p]
+    rows_seen = 0
     for k, data in enumerate(iter_sample_chunks(p, want)):
         if source is None:
             for col, name in (("temperature_C", "measured"), ("temperature_est_C", "estimated")):
@@ -98,7 +99,10 @@ def characterize_session(
             position[(flags & FLAGS_POSITION_INVALID) != 0] = np.nan
         if "stress_MPa" in data and np.isfinite(data["stress_MPa"]).any():
             stress.append(float(np.nanmedian(data["stress_MPa"])))
-        t_s = data["t_s"] if "t_s" in data else np.arange(len(t_c), dtype=float)
+        t_s = data.get("t_s")
+        if t_s is None or not np.isfinite(t_s).any():  # a thermometer loop: row order
+            t_s = np.arange(rows_seen, rows_seen + len(t_c), dtype=float)
+        rows_seen += len(t_c)
         try:
             stream.feed(t_c, position / float(length_mm), t_s, final=k == len(files) - 1)
         except CharacterizeError as exc:

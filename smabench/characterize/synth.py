@@ -21,8 +21,8 @@ class Branches:
     Af: float = 85.0
     Ms: float = 65.0
     Mf: float = 50.0
-    strain_martensite: float = 0.045  # on the martensite line at As / Mf
-    strain_austenite: float = 0.005  # on the austenite line at Af / Ms
+    strain_martensite: float = 0.045  # on the martensite line at As
+    strain_austenite: float = 0.005  # on the austenite line at Af
     slope_martensite: float = 2e-5  # 1/K
     slope_austenite: float = 1e-5  # 1/K
     round_k: float = 0.0
@@ -31,10 +31,12 @@ class Branches:
         """Strain along a branch whose transformation runs from ``start`` (martensite side) to
         ``finish`` (austenite side), both °C, start < finish."""
         t = np.asarray(t_c, dtype=float)
-        m_line = self.strain_martensite + self.slope_martensite * (t - start)
-        a_line = self.strain_austenite + self.slope_austenite * (t - finish)
-        e_s = self.strain_martensite
-        e_f = self.strain_austenite
+        # one martensite and one austenite line for both branches (a closed loop), anchored at
+        # As and Af; the transformation line joins them at start and finish
+        m_line = self.strain_martensite + self.slope_martensite * (t - self.As)
+        a_line = self.strain_austenite + self.slope_austenite * (t - self.Af)
+        e_s = self.strain_martensite + self.slope_martensite * (start - self.As)
+        e_f = self.strain_austenite + self.slope_austenite * (finish - self.Af)
         tr_line = e_s + (e_f - e_s) * (t - start) / (finish - start)
         if self.round_k <= 0:
             return np.where(t < start, m_line, np.where(t > finish, a_line, tr_line))

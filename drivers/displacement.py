@@ -23,6 +23,7 @@ import functools
 import json
 import logging
 import math
+import os
 import re
 import struct
 import time
@@ -33,6 +34,8 @@ from typing import Any
 
 SENSORS_DIR = Path(__file__).resolve().parent / "sensors"
 log = logging.getLogger(__name__)
+#: where Linux's ftdi_sio driver shows an adapter's latency timer, ms (16 by default)
+LATENCY_TIMER_SYSFS = "/sys/bus/usb-serial/devices/{tty}/latency_timer"
 
 # pymodbus logs every timeout at ERROR level with a packet dump; this driver reports link problems
 # itself (typed errors, sample flags). A NullHandler keeps those messages off stderr when the
@@ -661,6 +664,7 @@ class DisplacementSensor:
         self._client: Any = None
         self._last_connect_fail = -math.inf
         self._rx_seen = False
+        self._latency_checked = False
         self.stats = {"reads": 0, "ok": 0, "timeouts": 0, "exceptions": 0, "link_lost": 0,
                       "framing": 0, "retries": 0, "connects": 0, "invalid": 0}
 
@@ -690,6 +694,15 @@ class DisplacementSensor:
         """
         if self.connected:
             return
+        if self.spec.kind == "rtu" and not self._latency_checked:
+            self._latency_checked = True
+            latency = adapter_latency_ms(self.spec.device)
+            if latency is not None and latency > 1:
+                log.warning(
+                    "%s: the USB adapter's latency timer is %d ms: every sensor answer can wait "
+                    "that long; set it to 1 ms (drivers/sensors/README.md, 'USB adapters')",
+                    self.spec.device, latency,
+                )
         self._drop_client()
         client = self._make_client()
         try:
@@ -925,6 +938,17 @@ class DisplacementSensor:
             return regs[:count], attempt > 0
         assert last is not None
         raise last
+
+
+def adapter_latency_ms(device: str) -> int | None:
+    """The latency timer of the FTDI USB adapter behind serial ``device``, ms (symlinks such as
+    ``/dev/serial/by-id/…`` are followed); None when it has none (not FTDI, a pty, not Linux).
+    The adapter holds received bytes up to this long before it sends them to the host."""
+    tty = os.path.basename(os.path.realpath(device))
+    try:
+        return int(Path(LATENCY_TIMER_SYSFS.format(tty=tty)).read_text().strip())
+    except (OSError, ValueError):
+        return None
 
 
 def _short(exc: Exception) -> str:

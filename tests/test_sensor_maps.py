@@ -188,3 +188,24 @@ def test_blocks_and_writes_are_checked():
         parse_map({**GOOD, "on_connect": [{"address": 3, "values": [1]}]})
     with pytest.raises(SensorMapError, match=r"\[\[check\]\] #1.expect"):
         parse_map({**GOOD, "check": [{"address": 3, "expect": 70000, "description": "x"}]})
+
+
+def test_latency_timer_of_the_adapter_is_read_and_warned_about(tmp_path, monkeypatch, caplog):
+    """The driver reads the FTDI latency timer from sysfs (here a stand-in folder) and warns
+    when it is above 1 ms; a port without one (a pty, another chip) gives None."""
+    import smabench.drivers.displacement as d
+
+    (tmp_path / "ttyUSB7").mkdir()
+    (tmp_path / "ttyUSB7" / "latency_timer").write_text("16\n")
+    monkeypatch.setattr(d, "LATENCY_TIMER_SYSFS", str(tmp_path / "{tty}" / "latency_timer"))
+    link = tmp_path / "by-id-adapter"
+    link.symlink_to(tmp_path / "ttyUSB7")  # /dev/serial/by-id/… style names are followed
+    assert d.adapter_latency_ms(str(link)) == 16
+    assert d.adapter_latency_ms("/dev/pts/0") is None
+    s = DisplacementSensor(BAUMER, f"rtu:{tmp_path / 'ttyUSB7'}", timeout_s=T)
+    with (
+        caplog.at_level("WARNING", logger="smabench.drivers.displacement"),
+        pytest.raises(d.SensorLinkLost),
+    ):
+        s.connect()  # not a serial port: the connect fails, after the check
+    assert any("latency timer is 16 ms" in r.getMessage() for r in caplog.records)

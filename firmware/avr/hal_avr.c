@@ -319,13 +319,23 @@ static void adc_init(void)
 
 /* ------------------------------------------------------------------ TWI (ADS1115) */
 #define ADS1115_SLA (0x48u << 1) /* ADDR to GND (electrical.toml precise_adc.i2c_address) */
-#define TWI_WAIT 2000u           /* polls of TWINT: ~0.5 ms, > one byte at 400 kHz */
+#define TWI_WAIT 1500u           /* polls: ~0.5 ms, > 9 bit times at 400 kHz */
 
-static int8_t twi_wait(void)
+/* Wait for TWINT with one of the expected status codes. Waiting for the status, not TWINT
+ * alone: simavr 1.6 leaves TWINT set after a write of 1 and posts the status later; on the chip
+ * TWINT clears at once, so both ways end on the right status or on the timeout (an unexpected
+ * status, e.g. a NACK because no ADS1115 answers, also ends here, after the timeout). */
+static int8_t twi_wait_for(uint8_t st1, uint8_t st2)
 {
-    for (uint16_t i = 0; i < TWI_WAIT; i++)
-        if (TWCR & _BV(TWINT))
-            return 0;
+    for (uint16_t i = 0; i < TWI_WAIT; i++) {
+        if (TWCR & _BV(TWINT)) {
+            uint8_t st = TWSR & 0xF8u;
+            if (st == st1 || st == st2)
+                return 0;
+            if (st == 0x20u || st == 0x30u || st == 0x48u || st == 0x38u)
+                return -1; /* NACK or arbitration lost: fail at once */
+        }
+    }
     return -1;
 }
 
@@ -337,27 +347,26 @@ static void twi_stop(void)
 static int8_t twi_start(uint8_t sla_rw)
 {
     TWCR = _BV(TWINT) | _BV(TWSTA) | _BV(TWEN);
-    if (twi_wait() || ((TWSR & 0xF8u) != 0x08u && (TWSR & 0xF8u) != 0x10u))
+    if (twi_wait_for(0x08u, 0x10u)) /* START, repeated START */
         return -1;
     TWDR = sla_rw;
     TWCR = _BV(TWINT) | _BV(TWEN);
-    if (twi_wait())
-        return -1;
-    uint8_t st = TWSR & 0xF8u;
-    return (st == 0x18u || st == 0x40u) ? 0 : -1; /* SLA+W / SLA+R acknowledged */
+    /* SLA+W (0x18) / SLA+R (0x40) acknowledged; simavr 1.6 posts an acknowledged SLA+W as 0x28
+     * (data acknowledged), which the chip never does after an address */
+    return (sla_rw & 1u) ? twi_wait_for(0x40u, 0x40u) : twi_wait_for(0x18u, 0x28u);
 }
 
 static int8_t twi_write(uint8_t b)
 {
     TWDR = b;
     TWCR = _BV(TWINT) | _BV(TWEN);
-    return (twi_wait() || (TWSR & 0xF8u) != 0x28u) ? -1 : 0;
+    return twi_wait_for(0x28u, 0x28u);
 }
 
 static int8_t twi_read(uint8_t *b, uint8_t ack)
 {
     TWCR = (uint8_t)(_BV(TWINT) | _BV(TWEN) | (ack ? _BV(TWEA) : 0));
-    if (twi_wait())
+    if (twi_wait_for(ack ? 0x50u : 0x58u, ack ? 0x50u : 0x58u))
         return -1;
     *b = TWDR;
     return 0;

@@ -33,6 +33,7 @@
 #include "sim_irq.h"
 
 #include "boot.h" /* --bootloader: the Arduino bootloader and auto-reset */
+#include "periph.h" /* ADS1115, MAX31855, e-stop, NTC faults (periph.c) */
 
 /* static inline helpers for the UART input FIFO declared in avr_uart.h (read-only use here) */
 DEFINE_FIFO(uint16_t, uart_fifo);
@@ -151,9 +152,10 @@ static void model_update(int force)
     double i = wire_open ? 0.0 : duty * V_SUPPLY / (r_ohm + R_SERIES);
     double v_wire = wire_open ? duty * V_SUPPLY : i * r_ohm; /* open: the divider sees the switch */
     current_now = i;
+    periph_set_wire(i, v_wire);
     avr_raise_irq(adc_irq + ADC_IRQ_ADC0, clamp_mv(i * 1000.0));       /* 1 V per A */
     avr_raise_irq(adc_irq + ADC_IRQ_ADC1, clamp_mv(v_wire * 1000.0 / 3.0)); /* 1/3 divider */
-    avr_raise_irq(adc_irq + ADC_IRQ_ADC2, clamp_mv(ntc_mv(ambient_c)));
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC2, clamp_mv(periph_ntc_mv(ntc_mv(ambient_c))));
 }
 
 static void pwm_irq_cb(avr_irq_t *irq, uint32_t value, void *param)
@@ -271,8 +273,10 @@ static void pty_flush(void)
 /* ------------------------------------------------------------------ control channel */
 static void print_state(void)
 {
-    fprintf(ctl, "STATE t_ms=%.3f duty=%.4f current_a=%.4f r_ohm=%.4f\n",
+    fprintf(ctl, "STATE t_ms=%.3f duty=%.4f current_a=%.4f r_ohm=%.4f",
             total_cycles / (F_CPU / 1000.0), duty_now < 0 ? 0.0 : duty_now, current_now, r_ohm);
+    periph_state(ctl);
+    fputc('\n', ctl);
     fflush(ctl);
 }
 
@@ -308,6 +312,8 @@ static void control_line(char *line)
         model_update(1);
     } else if (!strcmp(cmd, "CLOSE")) {
         wire_open = 0;
+        model_update(1);
+    } else if (periph_command(cmd, arg)) {
         model_update(1);
     } else {
         fprintf(stderr, "smabench-sim: unknown command '%s'\n", cmd);
@@ -459,6 +465,7 @@ int main(int argc, char **argv)
     if (!adc_irq)
         die("no ADC IRQs");
     avr_irq_register_notify(adc_irq + ADC_IRQ_OUT_TRIGGER, adc_trigger_cb, NULL);
+    periph_attach(avr);
     avr_irq_t *pwm = avr_io_getirq(avr, AVR_IOCTL_TIMER_GETIRQ('1'), TIMER_IRQ_OUT_PWM0);
     if (pwm)
         avr_irq_register_notify(pwm, pwm_irq_cb, NULL);

@@ -697,11 +697,12 @@ def add_cli_options(parser: argparse.ArgumentParser,
             if gs is not None and gs.cli_triple and s.key.rsplit(".", 1)[1] in ("kp", "ki", "kd"):
                 if gs.law not in triples_done:
                     triples_done.add(gs.law)
+                    kp = SETTINGS[gs.keys[0]]
                     g.add_argument(
                         gs.cli_triple, nargs=3, metavar=("KP", "KI", "KD"), default=None,
                         dest=f"setting__gains__{gs.law}",
-                        help=f"{gs.label} gains: {', '.join(gs.units)}; each 0 … 100 "
-                        "(default: per-load table; live)",
+                        help=f"{gs.label} gains: {', '.join(gs.units)} [each "
+                        f"{_g(kp.min)} … {_g(kp.max_value)}; default {kp.none_text}]",
                     )  # fmt: skip
                 continue
             for name in s.cli_names():

@@ -34,6 +34,8 @@
 
 #include "boot.h" /* --bootloader: the Arduino bootloader and auto-reset */
 #include "periph.h" /* ADS1115, MAX31855, e-stop, NTC faults (periph.c) */
+#include "electrical.h"
+#include "sink.h"     /* the reference linear current sink (sink.c) */
 
 /* static inline helpers for the UART input FIFO declared in avr_uart.h (read-only use here) */
 DEFINE_FIFO(uint16_t, uart_fifo);
@@ -51,8 +53,6 @@ DEFINE_FIFO(uint16_t, uart_fifo);
 #define PWM_TOP 1023.0
 
 /* Electrical model (README.md) */
-#define V_SUPPLY 12.0
-#define R_SERIES 0.2 /* shunt 0.1 ohm + switch */
 #define ADC_VREF_MV 5000.0
 
 static avr_t *avr;
@@ -134,27 +134,29 @@ static uint32_t clamp_mv(double mv)
 static double ntc_mv(double celsius)
 {
     double t = celsius + 273.15;
-    double r_ntc = 10000.0 * exp(3950.0 * (1.0 / t - 1.0 / 298.15));
-    return ADC_VREF_MV * 10000.0 / (r_ntc + 10000.0);
+    double r_ntc = ELEC_NTC_R25_OHM * exp(ELEC_NTC_BETA_K * (1.0 / t - 1.0 / 298.15));
+    return ADC_VREF_MV * ELEC_NTC_FIXED_OHM / (r_ntc + ELEC_NTC_FIXED_OHM);
 }
 
 /* Recompute the ADC inputs when the duty or the model changed (force: always). */
 static void model_update(int force)
 {
     double duty = read_duty();
-    if (!force && !model_dirty && duty == duty_now)
-        return;
+    (void)force; /* the sink's filter moves with time: always recomputed */
     if (verbose && duty != duty_now)
         fprintf(stderr, "smabench-sim: t=%.3f ms duty %.4f (PWM0 irq %u x%u)\n",
                 total_cycles / (F_CPU / 1000.0), duty, pwm_irq_value, pwm_irq_count);
     duty_now = duty;
     model_dirty = 0;
-    double i = wire_open ? 0.0 : duty * V_SUPPLY / (r_ohm + R_SERIES);
-    double v_wire = wire_open ? duty * V_SUPPLY : i * r_ohm; /* open: the divider sees the switch */
-    current_now = i;
-    periph_set_wire(i, v_wire);
-    avr_raise_irq(adc_irq + ADC_IRQ_ADC0, clamp_mv(i * 1000.0));       /* 1 V per A */
-    avr_raise_irq(adc_irq + ADC_IRQ_ADC1, clamp_mv(v_wire * 1000.0 / 3.0)); /* 1/3 divider */
+    /* the reference linear sink (sink.c): D8 driven low releases the setpoint */
+    const uint8_t *d = avr->data;
+    int enabled = (d[A_DDRB] & 0x01) && !(d[A_PORTB] & 0x01);
+    uint64_t now = total_cycles + (avr->cycle >= last_cycle ? avr->cycle - last_cycle : avr->cycle);
+    sink_out_t o = sink_update((double)now / F_CPU, duty * PWM_TOP, enabled, r_ohm, wire_open);
+    current_now = o.current_a;
+    periph_set_wire(o.current_a, o.wire_v);
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC0, clamp_mv(o.adc0_mv)); /* shunt amplifier */
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC1, clamp_mv(o.adc1_mv)); /* supply monitor */
     avr_raise_irq(adc_irq + ADC_IRQ_ADC2, clamp_mv(periph_ntc_mv(ntc_mv(ambient_c))));
 }
 
@@ -273,8 +275,9 @@ static void pty_flush(void)
 /* ------------------------------------------------------------------ control channel */
 static void print_state(void)
 {
-    fprintf(ctl, "STATE t_ms=%.3f duty=%.4f current_a=%.4f r_ohm=%.4f",
-            total_cycles / (F_CPU / 1000.0), duty_now < 0 ? 0.0 : duty_now, current_now, r_ohm);
+    fprintf(ctl, "STATE t_ms=%.3f duty=%.4f current_a=%.4f r_ohm=%.4f supply_v=%.3f",
+            total_cycles / (F_CPU / 1000.0), duty_now < 0 ? 0.0 : duty_now, current_now, r_ohm,
+            sink_supply());
     periph_state(ctl);
     fputc('\n', ctl);
     fflush(ctl);
@@ -312,6 +315,14 @@ static void control_line(char *line)
         model_update(1);
     } else if (!strcmp(cmd, "CLOSE")) {
         wire_open = 0;
+        model_update(1);
+    } else if (!strcmp(cmd, "V") && arg) {
+        double v = strtod(arg, &end);
+        if (*end || !isfinite(v) || v < 0.0 || v > 30.0) {
+            fprintf(stderr, "smabench-sim: bad supply '%s'\n", arg);
+            return;
+        }
+        sink_set_supply(v);
         model_update(1);
     } else if (periph_command(cmd, arg)) {
         model_update(1);

@@ -19,6 +19,10 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from smabench.drivers.protocol import DeviceInfo
 
 log = logging.getLogger(__name__)
 
@@ -137,6 +141,8 @@ def flash(port: str, hex_path: Path, bauds: tuple[tuple[int, str], ...] = BOOTLO
             if verified is None:
                 raise FlashError(f"avrdude reported success but no verify: {proc.stderr[-200:]}")
             return baud
+        if "device initialized" in proc.stderr:  # the bootloader answered: no other baud rate
+            raise FlashError(f"avrdude at {baud} baud ({name}): {_avrdude_reason(proc.stderr)}")
         reasons.append(f"{baud} baud: {_avrdude_reason(proc.stderr)}")
     raise FlashError(
         "no bootloader answered on " + port + " (" + "; ".join(reasons) + "): check the port, "
@@ -144,7 +150,7 @@ def flash(port: str, hex_path: Path, bauds: tuple[tuple[int, str], ...] = BOOTLO
     )
 
 
-def identify(port: str):
+def identify(port: str) -> DeviceInfo:
     """Open the port (the board resets), do the handshake; returns the DeviceInfo."""
     from smabench.drivers.current_source import CurrentSource, CurrentSourceError
 

@@ -257,3 +257,21 @@ def test_connect_waits_through_the_auto_reset(harness_factory):
         assert len(external) == 2 + attempt, resets  # this open reset the board
         # the application answered only after the bootloader handed over (watchdog reset)
         assert any(c & WDRF and t > external[-1] for t, c in resets), resets
+
+
+def test_a_failed_verify_is_reported_not_retried_at_another_baud(capsys, monkeypatch, tmp_path):
+    fake = tmp_path / "bin"  # the bootloader answered, then the flash read back wrong
+    fake.mkdir()
+    script = "#!/bin/sh\necho \"$@\" >> \"$0.log\"\n"
+    script += "echo 'avrdude: AVR device initialized and ready to accept instructions' >&2\n"
+    script += "echo 'avrdude error: verification mismatch, first mismatch at byte 0x0000' >&2\n"
+    (fake / "avrdude").write_text(script + "exit 1\n")
+    (fake / "avrdude").chmod(0o755)
+    monkeypatch.setenv("PATH", str(fake))
+    port = tmp_path / "ttyFAKE"
+    port.touch()
+    hex_path = tmp_path / "app.hex"
+    hex_path.write_text(":020000000C945E\n:00000001FF\n")
+    code, _, err = flash_cli(capsys, "--port", port, "--hex", hex_path)
+    assert code == 1 and "verification mismatch" in err and "115200" in err
+    assert len((fake / "avrdude.log").read_text().splitlines()) == 1

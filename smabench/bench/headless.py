@@ -61,7 +61,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         print(
             f"mock bench: {args.load_kg} kg, speed {args.speed}×, firmware {args.firmware}"
             + (f", effects {', '.join(args.effect)}" if args.effect else "")
-            + (f", bootloader{' on a blank flash' if args.blank else ''}" if args.bootloader else "")
+            + (", bootloader" if args.bootloader else "")
+            + (" on a blank flash" if args.blank else "")
         )
         for line in ports.lines():
             print(line)

@@ -692,14 +692,14 @@ void core_init(uint8_t was_watchdog_reset)
     xadc_sum = 0;
     xadc_timer = 0;
     integ_q16 = 0;
-    slow_timer = SLOW_PERIOD_MS - 1u; /* NTC and thermocouple at the first tick */
+    slow_timer = 0; /* NTC and thermocouple after 100 ms, when the ADC has conversions */
     measured_r_ohm = 0.0f;
     ref_alpha_q8 = (int32_t)(256.0f * (1.0f - expf(-1000.0f / (float)ELEC_SETPOINT_FILTER_TAU_US)) + 0.5f);
     compliance = 0;
     dissipation_cap_ma = 0xFFFFu;
     load_eeprom();
-    (void)hal_adc_q4(HAL_ADC_AMBIENT);
-    measure_ambient();
+    s.ambient_cdeg = TEMP_NONE; /* not read yet (no fault either) */
+    ambient_c = HEAT_AMBIENT_FALLBACK_C;
     /* the wire may still be hot after a watchdog reset: start the budget near its maximum */
     s.model_c = was_watchdog_reset ? (float)s.heat.tmax_dc * 0.1f - (float)HEAT_REARM_K
                                    : ambient_c;

@@ -26,12 +26,15 @@ from smabench.gui.window import MainWindow  # noqa: E402
 
 Qt = QtCore.Qt
 ESTOP_LIMIT_S = 0.100
+# real time: the driver's setpoint lease (250 ms of device time) is not scaled with the mock's
+# speed, so a faster mock on a loaded machine expires it between two ticks
+MOCK_SPEED = 1.0
 
 
 @pytest.fixture
 def win(qtbot, tmp_path):
     make_app()
-    w = MainWindow(tmp_path / "sessions", mock_speed=5.0)
+    w = MainWindow(tmp_path / "sessions", mock_speed=MOCK_SPEED)
     qtbot.addWidget(w)
     w.resize(1280, 800)
     w.show()

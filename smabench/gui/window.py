@@ -94,6 +94,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._remaining_text = "–"
         self._question: QtWidgets.QMessageBox | None = None
         self._fresh_session = False
+        self._open_current_due: float | None = None
         self.jobs = Jobs()
         self.fields: dict[str, Field] = {}  # by settings-schema key
         self._build(mock_speed)
@@ -748,8 +749,18 @@ class MainWindow(QtWidgets.QMainWindow):
                 self.say(f"Not switched: {err}.", error=True)
                 self.mode_buttons[self.status.get("mode", "pid")].setChecked(True)
                 return
-            self.link.send(f"open_current {current.value():g}")
+            # the controller holds the current it had when open loop is entered, so the
+            # operator's current is sent after the switch (again once the status shows it)
+            self.link.send(f"mode {mode}")
+            self._open_current_due = current.value()
+            QtCore.QTimer.singleShot(100, self._send_open_current)
+            return
+        self._open_current_due = None
         self.link.send(f"mode {mode}")
+
+    def _send_open_current(self) -> None:
+        if self._open_current_due is not None and self._live_controller():
+            self.link.send(f"open_current {self._open_current_due:g}")
 
     def _gain_fields(self, law: str) -> list[Field]:
         return [self.fields[k] for k in GAIN_SETS[law].keys]
@@ -919,6 +930,9 @@ class MainWindow(QtWidgets.QMainWindow):
         )
         if st.get("running") and mode:
             self.active_mode.setText(f"active law: {MODE_LABEL.get(mode, mode)}")
+            if mode == "open_loop" and self._open_current_due is not None:
+                self._send_open_current()
+                self._open_current_due = None
             if self.session_controller and mode in self.mode_buttons:
                 self.mode_buttons[mode].setChecked(True)
         if self.state == State.IDLE:

@@ -303,12 +303,22 @@ def _load_flexinol(data_dir: Path) -> list[tuple[str, np.ndarray, np.ndarray]]:
 
 
 def cmd_bench_model(args: argparse.Namespace) -> int:
-    from smabench.physics.model_bench import benchmark_models, format_table
+    from smabench.physics.model_bench import (
+        benchmark_models,
+        benchmark_preisach_rows,
+        format_table,
+    )
     from smabench.physics.plant import benchmark_plant
 
     loops = _load_flexinol(Path(args.data) if args.data else default_data_dir())
     rows = benchmark_models(loops)
     print(format_table(rows))
+    name, t_loop, y_loop = loops[0]
+    p = benchmark_preisach_rows(t_loop, y_loop)
+    print(
+        f"Preisach fit on {p['rows']} rows with reversals (from {name}): {p['fit_s']:.1f} s, "
+        f"peak {p['peak_mb']:.0f} MB traced, nrmse {p['nrmse_percent']:.2f} %"
+    )
     plant = benchmark_plant()
     print(
         f"\nplant simulation at a 1 kHz step: {plant['steps_per_s']:.3g} steps/s "
@@ -430,6 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
     from smabench.characterize.cli import add_commands as add_characterize_commands
 
     add_characterize_commands(sub)
+    from smabench.plan import add_commands as add_plan_commands
+
+    add_plan_commands(sub)
     from smabench.firmware_cli import add_commands as add_firmware_commands
 
     add_firmware_commands(sub)

@@ -74,3 +74,18 @@ def test_wiping_out_and_return_point_memory(fitted):
 def test_rejects_unusable_data(t, y, message):
     with pytest.raises(ValueError, match=message):
         PreisachModel.fit(t, y)
+
+
+def test_normal_equations_equal_the_dense_design():
+    """Runs of samples in one level cell share their relay states: the run-by-run Gram matrix
+    is exactly X'X of the dense design (the memory-light fit solves the same problem)."""
+    from smabench.physics.preisach import _normal_equations, _relay_states
+
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.normal(0, 1.5, 3000)) % 60.0 + 20.0  # wandering with many reversals
+    y = rng.normal(size=t.size)
+    levels = np.linspace(21.0, 79.0, 12)
+    x = np.hstack([np.ones((t.size, 1)), (t - 20.0)[:, None], -_relay_states(t, levels)])
+    gram, rhs = _normal_equations(t - 20.0, y, levels - 20.0, -1.0, chunk=97)
+    assert np.allclose(gram, x.T @ x)
+    assert np.allclose(rhs, x.T @ y)

@@ -8,8 +8,9 @@ plus an affine term::
 where relay γ_ij (up switch α_i > down switch β_j) turns on when T ≥ α_i and off when T ≤ β_j and
 otherwise keeps its state, and ``s`` = ±1 is the direction of the stroke on heating (taken from the
 data). Diagonal relays (α_i = β_i) are memory-free steps and carry the reversible part. The
-weights come from non-negative least squares (``scipy.optimize.lsq_linear``) with a small ridge
-term that keeps the Preisach density smooth where the data do not pin it down.
+weights come from non-negative least squares with a small ridge term that keeps the Preisach
+density smooth where the data do not pin it down, solved on the normal equations built run by run
+(:func:`_normal_equations`), so memory and time do not grow with the design matrix.
 
 Relays start off (negative saturation: the input came from below the grid), so the model carries
 the return-point memory and wiping-out properties of the Preisach operator by construction.
@@ -21,7 +22,8 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import lsq_linear
+from scipy.linalg import cholesky, solve_triangular
+from scipy.optimize import nnls
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +89,8 @@ class PreisachModel:
             raise ValueError("positions contain NaN or infinity")
         if not 4 <= n_levels <= 200:
             raise ValueError(f"n_levels {n_levels} out of range 4..200")
+        if not ridge > 0:
+            raise ValueError(f"ridge must be > 0 (it keeps unexcited relays fixed), got {ridge}")
         t_lo, t_hi = float(t.min()), float(t.max())
         if t_hi - t_lo < 1.0:
             raise ValueError(f"temperature span {t_hi - t_lo:.2f} K is too small for a loop")
@@ -97,26 +101,20 @@ class PreisachModel:
         cold = y[t < t_lo + 0.1 * (t_hi - t_lo)]
         hot = y[t > t_hi - 0.1 * (t_hi - t_lo)]
         sign = 1.0 if np.median(hot) >= np.median(cold) else -1.0
-
-        states = _relay_states(t, levels)  # (n, n_relays) of 0/1
-        ii, jj = np.tril_indices(n_levels)
-        x = np.hstack([np.ones((n, 1)), (t - t_lo)[:, None], sign * states])
         stroke = float(np.ptp(y)) or 1.0
-        lam = np.sqrt(ridge * n)
-        reg = np.hstack([np.zeros((ii.size, 2)), lam * np.eye(ii.size)])
-        a = np.vstack([x, reg])  # solve for coefficients in units of the stroke
-        b = np.concatenate([y / stroke, np.zeros(ii.size)])
-        lb = np.r_[-np.inf, -np.inf, np.zeros(ii.size)]
-        sol = lsq_linear(a, b, bounds=(lb, np.inf), method="bvls")
-        if not np.all(np.isfinite(sol.x)):
-            raise ValueError("least squares did not converge")
-        coef = sol.x * stroke
+        gram, rhs = _normal_equations(t - t_lo, y / stroke, levels - t_lo, sign)
+        n_relays = gram.shape[0] - 2
+        gram[2:, 2:] += ridge * n * np.eye(n_relays)  # the ridge keeps the density smooth
+        x = _nonnegative_quadratic(gram, rhs, n_free=2)
+        coef = x * stroke
+        ii, jj = np.tril_indices(n_levels)
         weights = np.zeros((n_levels, n_levels))
-        weights[ii, jj] = np.maximum(coef[2:], 0.0)  # bvls may leave -1e-17
+        weights[ii, jj] = np.maximum(coef[2:], 0.0)  # round-off may leave -1e-17
         model = cls(levels, weights, float(coef[0]), float(coef[1]), t_lo, sign)
         log.info(
-            "preisach: %d levels, %d of %d relays active, cost %.3g",
-            n_levels, np.count_nonzero(coef[2:] > 1e-9), ii.size, sol.cost,
+            "preisach: %d levels, %d of %d relays active, objective %.3g",
+            n_levels, np.count_nonzero(coef[2:] > 1e-9), ii.size,
+            float(x @ gram @ x - 2 * rhs @ x),
         )  # fmt: skip
         return model
 
@@ -171,6 +169,65 @@ def _last_crossings(t: np.ndarray, levels: np.ndarray) -> tuple[np.ndarray, np.n
     np.maximum.accumulate(up, axis=1, out=up)
     np.maximum.accumulate(down, axis=1, out=down)
     return up, down
+
+
+def _normal_equations(
+    tau: np.ndarray, y: np.ndarray, levels: np.ndarray, sign: float, chunk: int = 4096
+) -> tuple[np.ndarray, np.ndarray]:
+    """X'X and X'y of the design ``[1, τ, sign·γ_ij]`` without building X (n × relays).
+
+    Between two neighbouring levels no relay can switch, so a run of samples in one level cell
+    shares one row of relay states: one state row per run, weighted by the run's sample count,
+    and the runs' sums of τ, τ², y and τ·y carry the rest exactly. Memory is O(relays²) plus one
+    chunk of runs; the 26 000-row fit that took 870 MB as a dense design takes a few tens."""
+    cells = np.searchsorted(levels, tau)
+    starts = np.r_[0, np.nonzero(np.diff(cells))[0] + 1]
+    counts = np.diff(np.r_[starts, tau.size]).astype(float)
+    s1 = np.add.reduceat(tau, starts)
+    s2 = np.add.reduceat(tau * tau, starts)
+    sy = np.add.reduceat(y, starts)
+    sty = np.add.reduceat(tau * y, starts)
+    rep = tau[starts]
+    up, down = _last_crossings(rep, levels)
+    ii, jj = np.tril_indices(levels.size)
+    diag = ii == jj
+    m = ii.size
+    gram = np.zeros((m + 2, m + 2))
+    rhs = np.zeros(m + 2)
+    gram[0, 0], gram[0, 1], gram[1, 1] = counts.sum(), s1.sum(), s2.sum()
+    rhs[0], rhs[1] = sy.sum(), sty.sum()
+    for a in range(0, starts.size, chunk):
+        b = slice(a, a + chunk)
+        states = up[ii, b] > down[jj, b]  # (relays, runs)
+        states[diag] = rep[None, b] >= levels[ii[diag], None]
+        sm = sign * states.T.astype(float)  # (runs, relays)
+        c = counts[b]
+        gram[2:, 2:] += sm.T @ (sm * c[:, None])
+        gram[0, 2:] += c @ sm
+        gram[1, 2:] += s1[b] @ sm
+        rhs[2:] += sy[b] @ sm
+    gram[1, 0] = gram[0, 1]
+    gram[2:, 0] = gram[0, 2:]
+    gram[2:, 1] = gram[1, 2:]
+    return gram, rhs
+
+
+def _nonnegative_quadratic(gram: np.ndarray, rhs: np.ndarray, n_free: int) -> np.ndarray:
+    """argmin x'Gx − 2h'x with x[n_free:] ≥ 0 (G positive definite).
+
+    The free coefficients are eliminated (Schur complement); the rest is a non-negative least
+    squares problem ‖L'x − L⁻¹h‖² on the Cholesky factor L of the reduced Gram matrix, which
+    Lawson–Hanson (``scipy.optimize.nnls``) solves in as many steps as there are active relays."""
+    g_ff, g_fs, g_ss = gram[:n_free, :n_free], gram[:n_free, n_free:], gram[n_free:, n_free:]
+    k = np.linalg.solve(g_ff, g_fs)
+    reduced = g_ss - g_fs.T @ k
+    h_red = rhs[n_free:] - k.T @ rhs[:n_free]
+    chol = cholesky(reduced, lower=True)
+    x_s, _ = nnls(chol.T, solve_triangular(chol, h_red, lower=True), maxiter=50 * reduced.shape[0])
+    if not np.all(np.isfinite(x_s)):
+        raise ValueError("least squares did not converge")
+    x_f = np.linalg.solve(g_ff, rhs[:n_free] - g_fs @ x_s)
+    return np.r_[x_f, x_s]
 
 
 def _relay_states(t: np.ndarray, levels: np.ndarray) -> np.ndarray:

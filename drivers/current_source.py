@@ -6,8 +6,11 @@ the configuration re-applied after every (re)connect, the commands with their un
 checks, the telemetry store (latest, history, subscribers, waiting) and the fault text.
 
 :meth:`CurrentSource.set_current` does not wait for its ACK: the control loop renews the setpoint
-every tick (the firmware's setpoint lease expires otherwise) and must not stall a round trip for
-it. A setpoint still queued when the next one comes is replaced by it; the ACKs are checked in
+every tick and must not stall a round trip for it. The firmware turns the output off when no
+SET_CURRENT came within its setpoint *lease* (:attr:`CurrentSource.lease_s`, 0.25 s by default;
+``LEASE_EXPIRED`` in telemetry): the link's keepalive PINGs keep the link up but never renew the
+lease, so a control loop that hangs in a live process stops heating. A setpoint still queued
+when the next one comes is replaced by it; the ACKs are checked in
 the background (:attr:`CurrentSource.setpoint_status`, counters, a log line when the device starts
 or stops clamping). ``set_current(x, wait=True)`` waits and returns the ACK status.
 
@@ -127,6 +130,8 @@ class CurrentSource:
         protocol_version: version sent in IDENTIFY (only tests change it).
         connect_wait_s: keep trying the handshake this long after opening the port, s
             (:data:`CONNECT_WAIT_S`; 0: one try with its retries).
+        lease_s: setpoint lease sent at connect, s (0.02 … 5; ``None`` = the device default,
+            0.25 s): the output goes off when no :meth:`set_current` came for this long.
     """
 
     def __init__(
@@ -144,6 +149,7 @@ class CurrentSource:
         history: int = 2000,
         protocol_version: int = p.PROTOCOL_VERSION,
         connect_wait_s: float = CONNECT_WAIT_S,
+        lease_s: float | None = None,
     ) -> None:
         self._link = FramedLink(
             port,
@@ -165,6 +171,9 @@ class CurrentSource:
         self._cfg_host_timeout_s = host_timeout_s
         self._host_timeout_s = host_timeout_s or p.HOST_TIMEOUT_DEFAULT_S
         self._limit_a: float | None = current_limit_a
+        if lease_s is not None:
+            p.set_lease(lease_s)  # ValueError now, not at connect
+        self._cfg_lease_s = lease_s
         self.info: p.DeviceInfo | None = None
 
         self._lock = threading.RLock()
@@ -287,6 +296,18 @@ class CurrentSource:
         with self._lock:
             self._cfg_limit_a, self._cfg_host_timeout_s = current_limit_a, host_timeout_s
             self._limit_a, self._host_timeout_s = current_limit_a, host_timeout_s
+
+    def set_lease(self, lease_s: float) -> None:
+        """Setpoint lease, s (0.02 … 5): the device turns the output off when no SET_CURRENT
+        came for this long (PINGs do not count). Kept for every reconnect."""
+        self._command(*p.set_lease(lease_s))
+        with self._lock:
+            self._cfg_lease_s = lease_s
+
+    @property
+    def lease_s(self) -> float:
+        """The setpoint lease in force, s (the device default until :meth:`set_lease`)."""
+        return p.LEASE_DEFAULT_S if self._cfg_lease_s is None else self._cfg_lease_s
 
     def set_telemetry(self, period_s: float) -> None:
         """Telemetry period, s (0 = off, else 0.005 … 1)."""
@@ -506,6 +527,8 @@ class CurrentSource:
                     )
                 )
                 self._host_timeout_s = host_timeout or p.HOST_TIMEOUT_DEFAULT_S
+            if self._cfg_lease_s is not None:
+                self._command(*p.set_lease(self._cfg_lease_s))
             self._command(*p.set_telemetry(self.telemetry_period_s))
         self._link.set_ready(True)
         log.info(

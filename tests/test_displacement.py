@@ -489,16 +489,17 @@ def test_rtu_float32(pty_pair):
 
 
 def test_rtu_bad_crc_timeout_and_exception(rtu_server):
+    t = 0.25  # a generous timeout: a loaded machine must not turn a good answer into a late one
     rtu_server.set_position_mm(1.0)
-    with rtu_sensor(rtu_server, retries=1) as s:
+    with rtu_sensor(rtu_server, retries=1, timeout_s=t) as s:
         rtu_server.corrupt_responses(count=2)
-        _, exc = bounded(s.read, limit_s=2 * T + 0.3)
+        _, exc = bounded(s.read, limit_s=2 * t + 1.0)
         assert isinstance(exc, SensorFrameError)
         assert s.read().ok
         rtu_server.corrupt_responses(count=1)
         assert s.read().flags == FLAG_RETRIED
-        rtu_server.delay_responses(0.5, count=2)
-        sample, _ = bounded(s.read_or_flag, limit_s=2 * T + 0.3)
+        rtu_server.delay_responses(3 * t, count=2)
+        sample, _ = bounded(s.read_or_flag, limit_s=2 * t + 1.0)
         assert sample.flags == FLAG_TIMEOUT and math.isnan(sample.position_mm)
         # the late answers must not be mistaken for the next one
         rtu_server.set_position_mm(2.0)

@@ -264,7 +264,7 @@ class SerialDevice:
                     fw = self.firmware
                     if self.boot_end_ms is None:
                         self._receive(fw)
-                        while self.device_ms + self.step_ms <= target:
+                        while self.boot_end_ms is None and self.device_ms + self.step_ms <= target:
                             self._step(fw)
                             self._receive(fw)
                 next_ms = self.device_ms + self.step_ms
@@ -292,6 +292,10 @@ class SerialDevice:
                 break
             self.rx_bytes += len(chunk)
             data += chunk
+        if data and self._inotify is not None:
+            self._watch_host()  # opened before these bytes were written: the bootloader eats them
+            if self.boot_end_ms is not None:
+                return
         if data:
             self._write(fw.receive(bytes(data), self.device_ms))
 

@@ -6,14 +6,18 @@ plant is stepped in sub-steps of ``substep_s``, 1 ms, with the current the simul
 drives). The owner of the clock — the offline closed loop, a test — advances it.
 
 - :class:`SimCurrentSource` (a :class:`~smabench.drivers.base.CurrentSourceDevice`) behaves as
-  the mock firmware (:mod:`smabench.drivers.mock.firmware`): the current follows the clamped
-  setpoint with the firmware's first-order settling (``CURRENT_TAU_MS``, 8 ms); output off at
-  start, on ``enable(False)``, on ``make_safe``, on a latched fault and when no command came
-  within the host timeout (0.25 s of simulated time). Telemetry every ``telemetry_period_s``
-  (10 ms, as the bench asks for): the mean current and wire voltage over the frame (an
-  oversampled measurement; the voltage from the plant's resistance), the plant's ambient,
-  flags, the setpoint — packed and unpacked through the protocol's TELEMETRY payload, so it has
-  the resolution of a real frame (1 mA, 1 mV, 0.01 °C).
+  the mock firmware (:mod:`smabench.drivers.mock.firmware`) on the reference driver: the
+  current is what the linear sink delivers (:class:`smabench.hardware.LinearSink`: the clamped
+  setpoint through the PWM filter's two poles, limited by the compliance); output off at start,
+  on ``enable(False)``, on ``make_safe``, on a latched fault, when no command came within the
+  host timeout and when no SET_CURRENT renewed the setpoint within the lease (0.25 s each, of
+  simulated time); open wire latched as the firmware does. Telemetry every
+  ``telemetry_period_s`` (10 ms, as the bench asks for): the mean current and Kelvin wire
+  voltage over the frame (an oversampled measurement; the voltage from the plant's
+  resistance), the plant's ambient, flags, the setpoint — packed and unpacked through the
+  protocol's TELEMETRY payload, so it has the resolution of a real frame. Not modelled: the
+  firmware's energy budget (``wire_model_c`` is reported empty), the thermocouple, the e-stop
+  input.
 - :class:`SimDisplacementSensor` (a :class:`~smabench.drivers.base.DisplacementDevice`): the
   plant's slider position with its sensor noise; flagged NaN samples while a failure is
   injected.
@@ -33,13 +37,13 @@ import threading
 from smabench.drivers import protocol as p
 from smabench.drivers.displacement import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
 from smabench.drivers.mock.firmware import (
-    CURRENT_TAU_MS,
     FW_VERSION,
     HARD_LIMIT_MA,
-    MAX_DUTY,
+    OPEN_WIRE_MA,
     OPEN_WIRE_MS,
-    SERIES_OHM,
+    OPEN_WIRE_SET_MA,
 )
+from smabench.hardware import ELECTRICAL, LinearSink
 from smabench.physics.effects import Effects
 from smabench.physics.plant import Plant, PlantState
 from smabench.physics.wire import PAPER_WIRE, Wire
@@ -56,7 +60,6 @@ __all__ = [
 ]
 
 DEVICE_NAME = "SMA-CD328-SIM"
-SUPPLY_V = 5.0  # for the reported duty only (the mock firmware's supply)
 G_MM_S2 = 9810.0  # free fall of a load whose wire broke, mm/s²
 FALL_STOP_MM = 50.0  # the falling load stops this far below where it was (the frame's end stop)
 
@@ -146,9 +149,9 @@ class SimCurrentSource:
         self,
         plant: SimPlant,
         *,
-        current_tau_s: float = CURRENT_TAU_MS / 1000.0,
         telemetry_period_s: float = 0.01,
         host_timeout_s: float = p.HOST_TIMEOUT_DEFAULT_S,
+        lease_s: float = p.LEASE_DEFAULT_S,
         current_limit_a: float | None = None,
     ) -> None:
         lo, hi = p.TELEMETRY_PERIOD_RANGE_S
@@ -156,9 +159,10 @@ class SimCurrentSource:
             raise ValueError(f"telemetry period must be in {lo} … {hi} s")
         self.plant = plant
         self.clock = plant.clock
-        self.current_tau_s = current_tau_s
+        self.sink = LinearSink()
         self.telemetry_period_s = telemetry_period_s
         self.host_timeout_s = host_timeout_s
+        self.lease_s = lease_s
         self.hard_limit_a = HARD_LIMIT_MA / 1000.0
         self.limit_a = self.hard_limit_a if current_limit_a is None else float(current_limit_a)
         self.info = p.DeviceInfo(p.PROTOCOL_VERSION, FW_VERSION, self.hard_limit_a, DEVICE_NAME)
@@ -168,6 +172,7 @@ class SimCurrentSource:
         self.flags = p.Flag(0)
         self.commands = 0  # commands received (each renews the host timeout)
         self._last_command_s = self.clock.now()
+        self._lease_start_s = self.clock.now()
         self._open_s = 0.0
         self._stalled = False
         self._frame_t0 = plant.t_s
@@ -181,28 +186,35 @@ class SimCurrentSource:
         """Shorten a plant sub-step so that it ends on the next telemetry frame."""
         return max(min(h, self._next_frame_s - t_s), 1e-9)
 
+    def _off(self) -> None:
+        self.enabled = False
+        self.current_a = 0.0
+        self.sink.state.pole1_a = self.sink.state.pole2_a = 0.0  # the enable line clamps
+
     def advance(self, h: float) -> float:
-        """The current over the next ``h`` s (first-order settling to the target), A."""
-        target = min(self.setpoint_a, self.limit_a) if self.enabled else 0.0
-        if self.plant.broken:
-            target = 0.0
-        if not self.enabled or self.plant.broken:
-            self.current_a = 0.0
-        elif self.current_tau_s > 0:
-            self.current_a = target + (self.current_a - target) * math.exp(-h / self.current_tau_s)
-        else:
-            self.current_a = target
+        """The current the sink delivers over the next ``h`` s, A."""
+        if not self.enabled:
+            self._off()
+            return 0.0
+        counts = min(self.setpoint_a, self.limit_a) / ELECTRICAL.setpoint_a_per_count
+        r_wire = 1e9 if self.plant.broken else self.plant.state.resistance_ohm
+        self.current_a = self.sink.step(counts, r_wire, h)
         return self.current_a
 
     def after_step(self, t_s: float, h: float, state: PlantState) -> None:
-        """Device bookkeeping after a plant sub-step ending at ``t_s``: watchdog, open-wire
-        detection, telemetry frames."""
-        if self.enabled and t_s - self._last_command_s > self.host_timeout_s:
+        """Device bookkeeping after a plant sub-step ending at ``t_s``: host timeout, lease,
+        open-wire detection, telemetry frames."""
+        if self.enabled and t_s - self._last_command_s >= self.host_timeout_s:
             log.info("simulated driver: host timeout at %.3f s, output off", t_s)
-            self.enabled = False
-            self.current_a = 0.0
+            self._off()
             self.flags |= p.Flag.HOST_TIMEOUT
-        if self.enabled and self.plant.broken and self.setpoint_a > 0:
+        if self.enabled and self.setpoint_a > 0 and t_s - self._lease_start_s >= self.lease_s:
+            log.info("simulated driver: setpoint lease expired at %.3f s, output off", t_s)
+            self._off()
+            self.setpoint_a = 0.0
+            self.flags |= p.Flag.LEASE_EXPIRED
+        set_ma = min(self.setpoint_a, self.limit_a) * 1000.0
+        if self.enabled and set_ma >= OPEN_WIRE_SET_MA and self.current_a * 1000.0 < OPEN_WIRE_MA:
             self._open_s += h
             if self._open_s * 1000.0 >= OPEN_WIRE_MS:
                 self._latch(p.Flag.OPEN_WIRE)
@@ -222,27 +234,27 @@ class SimCurrentSource:
         flags = self.flags | (p.Flag.ENABLED if self.enabled else 0)
         if self.enabled and self.setpoint_a >= self.limit_a > 0:
             flags |= p.Flag.LIMIT_ACTIVE
-        duty = 0.0
-        if self.enabled:
-            duty = min(MAX_DUTY, current_a * (state.resistance_ohm + SERIES_OHM) / SUPPLY_V)
+        counts = min(self.setpoint_a, self.limit_a) / ELECTRICAL.setpoint_a_per_count
+        current_a = max(current_a, 0.0)
         tel = p.Telemetry(
             t_ms=int(round(t_s * 1000.0)),
-            current_a=max(current_a, 0.0),
+            current_a=current_a,
             voltage_v=max(voltage_v, 0.0),
-            duty=duty,
+            duty=min(1.0, counts / ELECTRICAL["setpoint"]["pwm_top"]) if self.enabled else 0.0,
             ambient_c=state.ambient_c,
             flags=p.Flag(flags),
-            setpoint_a=min(self.setpoint_a, self.limit_a),
+            setpoint_a=self.setpoint_a,
             crc_errors=0,
             frame_errors=0,
+            precise_current_a=current_a,
+            supply_v=self.sink.supply_at_terminals_v(current_a),
         )  # through the frame's payload: the resolution a real frame has
         return p.Telemetry.from_payload(tel.to_payload(), host_time=t_s)
 
     def _latch(self, flag: p.Flag) -> None:
         log.warning("simulated driver: fault latched: %s", flag.name)
         self.flags |= flag
-        self.enabled = False
-        self.current_a = 0.0
+        self._off()
 
     # ------------------------------------------------------------------ host side
     def _command(self) -> None:
@@ -261,23 +273,23 @@ class SimCurrentSource:
             if on:
                 if self.flags & p.LATCHED_FAULTS:
                     raise SimDeviceFaultError(f"ENABLE refused: {p.fault_text(self.flags)}")
-                self.flags &= ~p.Flag.HOST_TIMEOUT
+                self.flags &= ~(p.Flag.HOST_TIMEOUT | p.Flag.LEASE_EXPIRED)
                 self.enabled = True
             else:  # as the firmware: output off, the setpoint kept
-                self.enabled = False
-                self.current_a = 0.0
+                self._off()
 
     def set_current(self, current_a: float) -> p.Status:
         """Current setpoint, A; ValueError outside 0 … the hard limit; above the active limit
-        the device clamps it (``Status.CLAMPED``). Renews the host timeout."""
+        the device clamps it (``Status.CLAMPED``). Renews the host timeout and the lease."""
         if not 0.0 <= current_a <= self.hard_limit_a + 1e-9:
             raise ValueError(
                 f"current {current_a} A outside 0 … {self.hard_limit_a} A (device hard limit)"
             )
         with self.plant.lock:
             self._command()
-            self.setpoint_a = round(float(current_a), 3)  # mA on the wire
-            return p.Status.CLAMPED if self.setpoint_a > self.limit_a else p.Status.OK
+            self._lease_start_s = self.clock.now()
+            self.setpoint_a = min(round(float(current_a), 3), self.limit_a)  # mA on the wire
+            return p.Status.CLAMPED if current_a > self.limit_a + 1e-9 else p.Status.OK
 
     def set_limits(self, current_limit_a: float, host_timeout_s: float) -> None:
         lo, hi = p.HOST_TIMEOUT_RANGE_S
@@ -314,9 +326,8 @@ class SimCurrentSource:
         try:
             with self.plant.lock:
                 self.plant.sync()
-                self.enabled = False
+                self._off()
                 self.setpoint_a = 0.0
-                self.current_a = 0.0
             return True
         except Exception:  # never raises: this is the emergency path
             log.exception("simulated make_safe")
@@ -392,9 +403,9 @@ class SimBench:
         noise_mm: float = 0.002,
         seed: int = 0,
         substep_s: float = 1e-3,
-        current_tau_s: float = CURRENT_TAU_MS / 1000.0,
         telemetry_period_s: float = 0.01,
         host_timeout_s: float = p.HOST_TIMEOUT_DEFAULT_S,
+        lease_s: float = p.LEASE_DEFAULT_S,
         clock: SimClock | None = None,
     ) -> None:
         if not 0.0 < load_kg <= 10.0:
@@ -404,9 +415,9 @@ class SimBench:
         self.plant = SimPlant(model, self.clock, substep_s)
         self.source = SimCurrentSource(
             self.plant,
-            current_tau_s=current_tau_s,
             telemetry_period_s=telemetry_period_s,
             host_timeout_s=host_timeout_s,
+            lease_s=lease_s,
         )
         self.sensor = SimDisplacementSensor(self.plant)
 

@@ -10,13 +10,13 @@ import threading
 import numpy as np
 import pytest
 
+from smabench.bench.offline import run_closed_loop
 from smabench.bench.runtime import BenchRuntime
 from smabench.control import ControllerSettings, PIDGains, build_controller, parse_switch
 from smabench.control.controller import MODES
 from smabench.control.factory import kinetic_lag_for, loop_model_for
 from smabench.control.model import InverseLoop
 from smabench.control.pid import PID, gains_for_load
-from smabench.bench.offline import run_closed_loop
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
 from smabench.protocols import ProtocolSettings
@@ -215,10 +215,12 @@ def test_live_gain_changes_for_both_ffpid_sets_in_one_tick_are_both_applied():
         c.set_gains(0.1, 0.1, 0.0, law="ff")
 
 
-@pytest.mark.parametrize("load, ratio", [(1.0, 0.8), (2.0, 0.8), (4.0, 1.0)])
+@pytest.mark.parametrize("load, ratio", [(1.0, 0.9), (2.0, 0.9), (4.0, 1.0)])
 def test_ffpid_is_no_worse_than_pid_on_steps_in_the_offline_loop(load, ratio):
-    """The issue's step target: the feed-forward lands the step, the hold gains only trim.
-    (With the tracking gains on the holds the ratio was 0.84–0.92 at 1 and 2 kg.)"""
+    """The issue's step target (≤ 1): the feed-forward lands the step, the hold gains only trim.
+    Measured with the reference driver's current (the linear sink, ≈ 2 ms): 0.86 at 1 kg and
+    0.87 at 2 kg; the gains were tuned when the offline loop had an 8 ms first-order current
+    lag, which gave 0.69 and 0.71 (with the tracking gains on the holds: 0.84–0.92)."""
     rms = {m: _rms_after_lead_in(make(m, kind="step", period=30.0, load=load), load, None)
            for m in ("pid", "ffpid")}  # fmt: skip
     assert rms["ffpid"] <= ratio * rms["pid"], rms
@@ -371,6 +373,16 @@ def test_ceiling_limits_the_temperature():
 
 
 # --------------------------------------------------------------------------- on the mock bench
+def test_bench_control_offline_case_settles_every_step_edge():
+    """``smabench bench control --offline``: the same case on simulated time, where settling
+    does not depend on the machine: PID settles both edges of a 2 kg step."""
+    from smabench.bench.control_bench import Case, run_case_offline
+
+    step = run_case_offline(Case("step", "step", 20.0, 1, 2.0, "pid"), 0.0125)
+    assert step["settled"] == "2/2" and 0.0 <= step["settle_s"] < 10.0, step
+    assert step["samples"] == round(20.0 / 0.0125) + round(8.0 / 0.0125) + 1
+
+
 def test_bench_control_smoke_on_the_mock(tmp_path):
     from smabench.bench.control_bench import Case, format_table, run_case
 
@@ -378,7 +390,7 @@ def test_bench_control_smoke_on_the_mock(tmp_path):
     row = run_case(Case("sine 10 s", "sine", 10.0, 1, 2.0, "ffpid"), speed=5.0, rate_hz=400.0)
     assert row["samples"] > 100 and 0.0 < row["rms_mm"] < 1.0
     step = run_case(Case("step", "step", 20.0, 1, 2.0, "pid"), speed=10.0, rate_hz=200.0)
-    assert "settle_s" in step and step["settled"].endswith("/2")
+    assert "settle_s" in step and step["settled"].split("/")[1] == "2"  # two step edges
     text = format_table([row, step])
     assert "RMS mm" in text and "sine 10 s" in text
 

@@ -163,23 +163,24 @@ def test_set_current_is_reflected_in_the_telemetry_and_on_the_device_side(rig):
 
     def reported() -> bool:
         t = rig.source.latest()
+        # the Kelvin wire voltage, when the device has one, is the current through the
+        # plant's resistance (0.3 … 1 Ω)
         return (
             t is not None
             and t.setpoint_a == pytest.approx(SETPOINT_A, abs=1e-3)
             and abs(t.current_a - SETPOINT_A) < TOLERANCE_A
             and bool(t.flags & p.Flag.ENABLED)
+            and (math.isnan(t.voltage_v) or 0.3 * SETPOINT_A < t.voltage_v < 1.0 * SETPOINT_A)
         )
 
     assert rig.wait(reported), f"{rig.name}: telemetry {rig.source.latest()}"
     age = rig.source.telemetry_age_s()
     assert age is not None and 0.0 <= age < rig.wait_s
-    assert rig.source.fault_text() == ""
     t = rig.source.latest()
-    # the wire voltage is the current through the plant's resistance (0.3 … 1 Ω)
-    assert 0.3 * SETPOINT_A < t.voltage_v < 1.0 * SETPOINT_A
+    assert not t.flags & p.LATCHED_FAULTS, rig.source.fault_text()
     rig.source.enable(False)  # output off: reported, and on the device side
     assert rig.wait(
-        lambda: not (t := rig.source.latest()).flags & p.Flag.ENABLED and t.current_a == 0.0
+        lambda: not (t := rig.source.latest()).flags & p.Flag.ENABLED and t.current_a < 0.005
     )
     assert rig.wire_current_a() == 0.0
 

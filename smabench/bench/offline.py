@@ -4,9 +4,10 @@
 :class:`~smabench.bench.tick.ControlTick` as on the bench: interlocks, the temperature estimate
 from the driver's telemetry (measured current, wire voltage so V/I, ambient), the controller's
 observe/update, the command every tick — against the simulated devices of
-:mod:`smabench.drivers.sim` (the plant in 1 ms sub-steps, the firmware's 8 ms current settling,
-telemetry frames every 10 ms) with the loop scheduled on their simulated clock. Nothing here
-waits on the wall clock, so its figures do not depend on how busy the machine is.
+:mod:`smabench.drivers.sim` (the plant in 1 ms sub-steps, the reference driver's current with
+its setpoint lease, telemetry frames every 10 ms) with the loop scheduled on their simulated
+clock. Nothing here waits on the wall clock, so its figures do not depend on how busy the
+machine is.
 
 Used by the unit tests, gain tuning (:mod:`smabench.bench.tuning`) and ``smabench bench control
 --offline``.
@@ -23,16 +24,11 @@ import numpy as np
 from smabench.bench.runtime import BenchRuntime
 from smabench.bench.tick import RuntimeConfig
 from smabench.commands import CommandSource
-from smabench.drivers.mock.firmware import CURRENT_TAU_MS
 from smabench.drivers.sim import SimBench
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE, Wire
 
 log = logging.getLogger(__name__)
-
-CURRENT_TAU_S = CURRENT_TAU_MS / 1000.0
-"""Settling time constant of the driver's current loop, s (the mock firmware's)."""
-
 
 @dataclass
 class LoopTrace:
@@ -63,7 +59,6 @@ def run_closed_loop(
     noise_mm: float = 0.002,
     on_tick: Callable[[int, float], None] | None = None,
     substep_s: float = 1e-3,
-    current_tau_s: float = CURRENT_TAU_S,
     seed: int = 3,
     *,
     config: RuntimeConfig | None = None,
@@ -80,9 +75,8 @@ def run_closed_loop(
     """
     if bench is None:
         bench = SimBench(
-            load_kg, wire, effects, noise_mm=noise_mm, seed=seed, substep_s=substep_s,
-            current_tau_s=current_tau_s,
-        )  # fmt: skip
+            load_kg, wire, effects, noise_mm=noise_mm, seed=seed, substep_s=substep_s
+        )
     if config is None:
         n = int(round(duration_s / dt_s))
         config = RuntimeConfig(rate_hz=1.0 / dt_s, wire=wire, max_duration_s=(n - 0.5) * dt_s)

@@ -11,7 +11,11 @@ tick, in this order:
    bits count as invalid: such a position is never fed to the controller); no valid position
    for ``sensor_timeout_s`` ends the session, shorter bursts are flagged rows;
 3. the driver telemetry: none, or older than ``link_timeout_s``, ends the session (after a
-   start-up grace of ``link_timeout_s``); a device fault ends it;
+   start-up grace of ``link_timeout_s``, in which frames that do not report the output on yet
+   are stale: they predate the session's ENABLE); the output reported off ends it, with the
+   device's fault text (a latched fault, a host timeout, an expired lease, its e-stop). A fault
+   that leaves the output on (the NTC, the thermocouple, the wire-voltage ADC) is logged and
+   the session goes on: the estimate then does without the missing value;
 4. the temperature estimate (:class:`~smabench.physics.thermal.TemperatureEstimator`) from the
    telemetry's current, wire voltage (so the measured resistance V/I) and ambient (the first
    frame's ambient is also the wire's starting temperature);
@@ -39,6 +43,7 @@ from typing import Any
 from smabench.commands import CommandSource, CommandStep, ObservingCommandSource
 from smabench.drivers.base import Sample, Telemetry
 from smabench.drivers.displacement import FLAG_SENSOR_STATUS
+from smabench.drivers.protocol import Flag
 from smabench.physics.thermal import TemperatureEstimator
 from smabench.physics.wire import PAPER_WIRE, Wire
 from smabench.sessions import (
@@ -135,6 +140,7 @@ class ControlTick:
         self._last_good_clock_s = 0.0
         self._last_valid: tuple[float, float] | None = None  # (t_s, position_mm)
         self._ambient_known = False
+        self._reported_fault = ""
         self.ticks = 0
 
     def _end(self, status: str, reason: str, row: dict | None = None) -> TickResult:
@@ -182,8 +188,9 @@ class ControlTick:
         if lost_s > cfg.sensor_timeout_s:
             return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s")
 
+        starting = clock_s <= cfg.link_timeout_s  # start-up grace: the first frames may be old
         if telemetry is None or telemetry_age_s is None or telemetry_age_s > cfg.link_timeout_s:
-            if clock_s > cfg.link_timeout_s:
+            if not starting:
                 return self._end(
                     "aborted",
                     "current driver telemetry lost"
@@ -191,8 +198,21 @@ class ControlTick:
                     else f"current driver telemetry lost for {telemetry_age_s:.2f} s",
                 )
             flags |= FLAG_TELEMETRY_STALE
-        if fault:
-            return self._end("aborted", f"current driver fault: {fault}")
+        output_on = telemetry is not None and bool(telemetry.flags & Flag.ENABLED)
+        if not output_on:
+            if not starting:  # the device turned its output off: a fault, an event, e-stop
+                return self._end(
+                    "aborted",
+                    f"current driver fault: {fault}"
+                    if fault
+                    else "current driver output turned off by the device",
+                )
+            # a frame from before the session's ENABLE: its events (a host timeout while the
+            # session was being set up) are history, not this session's fault
+            flags |= FLAG_TELEMETRY_STALE
+        elif fault and fault != self._reported_fault:  # output on: a sensor fault, degraded
+            self._reported_fault = fault
+            log.warning("current driver reports %s; the output is on, the session goes on", fault)
         current_a = telemetry.current_a if telemetry is not None else math.nan
         voltage_v = telemetry.voltage_v if telemetry is not None else None
         ambient_c = telemetry.ambient_c if telemetry is not None else cfg.ambient_c
@@ -232,6 +252,7 @@ class ControlTick:
             mode=step.mode,
             cycle=step.cycle,
             flags=flags,
+            temperature_C=telemetry.thermocouple_c if telemetry is not None else None,
         )
         self.ticks += 1
         if interlock:

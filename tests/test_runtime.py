@@ -110,15 +110,27 @@ def test_the_current_is_commanded_every_tick():
 
 
 def test_a_host_whose_loop_stops_commanding_loses_the_output():
-    """Device side: once the commands stop (a hung loop), the driver turns itself off after its
-    host timeout, whatever the host does."""
+    """Device side: once the setpoint is no longer renewed (a hung loop whose link thread still
+    keeps the link alive), the lease expires and the output goes off; once nothing comes at
+    all, the host timeout does the same."""
     bench = SimBench(2.0)
-    bench.source.enable(True)
-    bench.source.set_current(1.0)
-    bench.clock.sleep(0.2)
+    src = bench.source
+    src.enable(True)
+    src.set_current(1.0)
+    for _ in range(4):  # 0.2 s of keepalive-only traffic: inside the 0.25 s lease
+        bench.clock.sleep(0.05)
+        src.set_limits(2.5, 0.25)
     assert bench.state.current_a == pytest.approx(1.0, abs=0.01)
-    bench.clock.sleep(0.1)  # 0.3 s since the last command: past the 0.25 s host timeout
-    assert bench.state.current_a == 0.0 and bench.source.latest().flags & p.Flag.HOST_TIMEOUT
+    bench.clock.sleep(0.06)
+    src.set_limits(2.5, 0.25)  # the link is alive, the setpoint is not renewed
+    assert src.current_a == 0.0 and src.setpoint_a == 0.0 and src.flags & p.Flag.LEASE_EXPIRED
+    assert not src.flags & p.Flag.HOST_TIMEOUT
+    src.enable(True)
+    src.set_current(1.0)
+    bench.clock.sleep(0.3)  # silence: host timeout and lease
+    bench.plant.sync()  # the device side catches up with the clock
+    assert src.current_a == 0.0 and src.flags & p.Flag.HOST_TIMEOUT
+    assert bench.source.latest().flags & p.Flag.HOST_TIMEOUT
 
 
 def test_the_estimate_uses_the_measured_resistance_and_the_drivers_ambient():

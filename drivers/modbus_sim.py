@@ -49,12 +49,15 @@ class SensorServer:
         baudrate: int | None = None,
         unit_id: int | None = None,
         adapter_latency_s: float = 0.0,
+        parity: str | None = None,
     ) -> None:
         self.sensor_map = sensor_map if isinstance(sensor_map, SensorMap) else load_map(sensor_map)
         self.host = host
         self.tcp_port = tcp_port
         self.serial_port = serial_port
         self.baudrate = baudrate or self.sensor_map.line.baudrate
+        # a pty refuses parity (EINVAL): serve an 8E1 map as 8N1 there (``parity="N"``)
+        self.parity = parity or self.sensor_map.line.parity
         self.unit_id = self.sensor_map.unit_id if unit_id is None else unit_id
         self._lock = threading.Lock()
         if not 0.0 <= adapter_latency_s <= 1.0:
@@ -190,7 +193,8 @@ class SensorServer:
 
     @property
     def rtu_spec(self) -> str:
-        return f"rtu:{self.serial_port}:{self.baudrate}"
+        line = self.sensor_map.line
+        return f"rtu:{self.serial_port}:{self.baudrate}:{line.bytesize}{self.parity}{line.stopbits}"
 
     def __enter__(self) -> SensorServer:
         return self.start()
@@ -270,7 +274,7 @@ class SensorServer:
             line = self.sensor_map.line
             srv = ModbusSerialServer(
                 device, framer=FramerType.RTU, port=self.serial_port, baudrate=self.baudrate,
-                parity=line.parity, stopbits=line.stopbits, bytesize=line.bytesize,
+                parity=self.parity, stopbits=line.stopbits, bytesize=line.bytesize,
                 trace_packet=self._trace_rtu,
             )
             self._servers.append(srv)

@@ -259,10 +259,11 @@ class MockBench:
                 tcp_port=self.tcp_port,
                 serial_port=rtu_ends[0] if rtu_ends else None,
                 adapter_latency_s=self.adapter_latency_s,
+                parity="N",  # a pty refuses parity: an 8E1 map is served as 8N1 (rtu_spec says)
             )
             self.server.set_source("position", self.link.position_mm)
             self.server.start()
-            rtu_spec = f"rtu:{rtu_ends[1]}:{self.server.baudrate}" if rtu_ends else None
+            rtu_spec = self.server.rtu_spec.replace(rtu_ends[0], rtu_ends[1]) if rtu_ends else None
             self.ports = MockPorts(driver_port, self.server.tcp_spec, rtu_spec)
         except BaseException:
             self.stop()

@@ -50,6 +50,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
         trace=args.trace,
         bootloader=args.bootloader,
         blank=args.blank,
+        sensor_map=args.sensor_map,
+        adapter_latency_s=args.adapter_latency_ms / 1000.0,
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -81,7 +83,9 @@ def cmd_mock(args: argparse.Namespace) -> int:
 def _control_loop(bench, done: threading.Event) -> None:
     """Fault injection from stdin, one command per line (for tests and demos):
     ``sensor-delay S N`` (N responses late by S s), ``sensor-exception CODE N``,
-    ``sensor-corrupt N``, ``open-wire``, ``close-wire``, ``quit``. EOF ends the mock."""
+    ``sensor-corrupt N``, ``sensor-status-error N`` / ``sensor-sentinel N`` (the map's error
+    status / "no measurement" code for N requests), ``open-wire``, ``close-wire``, ``quit``.
+    EOF ends the mock."""
     for line in sys.stdin:
         words = line.split()
         if not words:
@@ -94,6 +98,10 @@ def _control_loop(bench, done: threading.Event) -> None:
                 bench.server.fail_with_exception(int(rest[0]), int(rest[1]))
             elif cmd == "sensor-corrupt":
                 bench.server.corrupt_responses(int(rest[0]))
+            elif cmd == "sensor-status-error":
+                bench.server.serve_status_error(int(rest[0]))
+            elif cmd == "sensor-sentinel":
+                bench.server.serve_sentinel(int(rest[0]))
             elif cmd in ("open-wire", "close-wire") and bench.device is not None:
                 bench.device.set_open_wire(cmd == "open-wire")
             elif cmd == "quit":
@@ -102,7 +110,7 @@ def _control_loop(bench, done: threading.Event) -> None:
                 print(f"mock: unknown command {line.strip()!r}", file=sys.stderr, flush=True)
                 continue
             print(f"ok {cmd}", flush=True)
-        except (IndexError, ValueError) as exc:
+        except (IndexError, KeyError, ValueError) as exc:
             print(f"mock: bad command {line.strip()!r}: {exc}", file=sys.stderr, flush=True)
     done.set()
 
@@ -197,6 +205,14 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
         help="current driver: the Python firmware model, or the real firmware in simavr",
     )
     s.add_argument(f"--{prefix}seed", type=int, default=0, help="sensor noise seed")
+    s.add_argument(
+        f"--{prefix}adapter-latency-ms",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="hold every sensor answer this long, as an FTDI USB/RS-485 adapter's latency timer "
+        "does (16 ms by default on a real one; drivers/sensors/README.md)",
+    )
     s.add_argument(
         f"--{prefix}trace",
         metavar="FILE.csv",
@@ -315,6 +331,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mock_args += ["--effect", e]
             if args.mock_trace:
                 mock_args += ["--trace", str(Path(args.mock_trace).resolve())]
+            mock_args += ["--sensor-map", args.sensor_map]  # it serves what the client reads
+            mock_args += ["--adapter-latency-ms", f"{args.mock_adapter_latency_ms:g}"]
             mock = MockProcess(mock_args)
             port = mock.ports.driver
             spec = mock.ports.sensor_rtu if args.mock_sensor == "rtu" else mock.ports.sensor_tcp
@@ -386,6 +404,11 @@ def add_commands(sub) -> None:
         "--control-stdin", action="store_true", help="read fault-injection commands on stdin"
     )
     add_mock_arguments(s)
+    s.add_argument(
+        "--sensor-map",
+        default="generic-rs485-laser",
+        help="register map the sensor serves (drivers/sensors; `smabench run` passes its own)",
+    )
     s.add_argument(
         "--bootloader",
         action="store_true",

@@ -35,8 +35,15 @@ class TimedSteps:
         return CommandStep(0.3 if int(t_s / 2.0) % 2 == 0 else 0.9, 0, "steps")
 
 
-def loop_timing(rate_hz: float, firmware: str, duration_s: float, sensor: str = "tcp") -> dict:
-    """One configuration; returns the figures as a dict."""
+def loop_timing(
+    rate_hz: float,
+    firmware: str,
+    duration_s: float,
+    sensor: str = "tcp",
+    adapter_latency_ms: float = 0.0,
+) -> dict:
+    """One configuration; returns the figures as a dict. ``adapter_latency_ms``: the mock's
+    sensor holds every answer this long (an FTDI USB/RS-485 adapter's latency timer)."""
     with tempfile.TemporaryDirectory(prefix="smabench-bench-loop-") as tmp:
         settings = RunSettings(
             load_kg=2.0,
@@ -47,7 +54,9 @@ def loop_timing(rate_hz: float, firmware: str, duration_s: float, sensor: str = 
             max_duration_s=duration_s + 30.0,
         )
         settings.validate()
-        with MockProcess(["--load-kg", "2", "--firmware", firmware]) as mock:
+        mock_args = ["--load-kg", "2", "--firmware", firmware]
+        mock_args += ["--adapter-latency-ms", f"{adapter_latency_ms:g}"]
+        with MockProcess(mock_args) as mock:
             spec = mock.ports.sensor_tcp if sensor == "tcp" else mock.ports.sensor_rtu
             source, dev_sensor = open_devices(mock.ports.driver, spec, settings)
             try:
@@ -66,6 +75,7 @@ def loop_timing(rate_hz: float, firmware: str, duration_s: float, sensor: str = 
         "rate_hz": rate_hz,
         "firmware": firmware,
         "sensor": sensor,
+        "adapter_latency_ms": adapter_latency_ms,
         "duration_s": float(periods.sum()),
         "ticks": int(periods.size + 1),
         "achieved_hz": float(1.0 / periods.mean()),
@@ -78,13 +88,15 @@ def loop_timing(rate_hz: float, firmware: str, duration_s: float, sensor: str = 
 
 def format_rows(rows: list[dict]) -> str:
     head = (
-        f"{'rate Hz':>7s} {'firmware':9s} {'sensor':6s} {'s':>5s} {'ticks':>6s} "
+        f"{'rate Hz':>7s} {'firmware':9s} {'sensor':6s} {'adapter ms':>10s} {'s':>5s} "
+        f"{'ticks':>6s} "
         f"{'achieved Hz':>11s} {'jitter p50 ms':>13s} {'p99 ms':>7s} {'max ms':>7s} {'missed':>6s}"
     )
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(
-            f"{r['rate_hz']:7.0f} {r['firmware']:9s} {r['sensor']:6s} {r['duration_s']:5.0f} "
+            f"{r['rate_hz']:7.0f} {r['firmware']:9s} {r['sensor']:6s} "
+            f"{r.get('adapter_latency_ms', 0.0):10g} {r['duration_s']:5.0f} "
             f"{r['ticks']:6d} {r['achieved_hz']:11.2f} {r['jitter_p50_ms']:13.3f} "
             f"{r['jitter_p99_ms']:7.3f} {r['jitter_max_ms']:7.2f} {r['missed']:6d}"
         )

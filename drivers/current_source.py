@@ -576,8 +576,9 @@ class CurrentSource:
             new_faults = t.flags & ~self._last_fault_flags & ~(p.Flag.ENABLED | p.Flag.LIMIT_ACTIVE)
             self._last_fault_flags = int(t.flags)
             self._tel_cond.notify_all()
-        if new_faults:
-            log.warning("device fault/event: %s", p.fault_text(new_faults))
+        text = p.fault_text(new_faults) if new_faults else ""
+        if text:  # (status bits such as CAL_DEFAULT have no fault text: not worth a warning)
+            log.warning("device fault/event: %s", text)
         for cb in subscribers:
             try:
                 cb(t)

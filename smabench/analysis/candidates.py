@@ -75,9 +75,9 @@ BASELINE: tuple[Param, ...] = (
     Param("h_shape", "1 (-1 Tanaka exponential … 0 cosine … 1 logistic)", 0.3, -1.0, 1.0, 0.3),
     Param("c_shape", "1 (-1 Tanaka exponential … 0 cosine … 1 logistic)", 0.3, -1.0, 1.0, 0.3),
     Param("memory", "1 (0 scaled branch … 1 wiping-out)", 0.3, 0.0, 1.0, 0.0),
-    Param("tau_heat_s", "s", 0.1, 0.0, 5.0, 0.05),
+    Param("heat_lag_ratio", "1 (τ_heat/τ_cool ≤ 0.5: the reverse transformation needs no "
+          "nucleation; equal lags on both branches are a sensor's)", 0.1, 0.0, 0.5, 0.1),
     Param("tau_cool_s", "s", 0.5, 0.0, 5.0, 0.2),
-    Param("kin_sqrt", "K/√(K/s)", 0.5, 0.0, 4.0, 0.3),
     Param("shrink_k_per_mpa", "K/MPa", 0.03, 0.0, 0.1, 0.0),
 )
 """The baseline's nonlinear parameters (which of them a problem uses: ``core._spec``). The loop's

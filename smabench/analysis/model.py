@@ -8,7 +8,9 @@ of the Liang–Rogers half-cosine and a logistic of the same centre and mid slop
 last reversal the loop model's adaptation rule (``memory`` 0: the major branch scaled through
 the reversal point, the paper's moving common point; 1: ξ held until the major branch returns,
 a Preisach model's wiping-out; between: a blend); first-order lags of ξ behind its equilibrium
-on each branch (``tau_heat_s``, ``tau_cool_s``: the nucleation-limited forward transformation);
+on each branch (``tau_cool_s``, the nucleation-limited forward transformation, and
+``tau_heat_s`` = ``heat_lag_ratio``·τ_cool ≤ τ_cool/2: the reverse transformation needs no
+nucleation, so equal lags on both branches are a sensor's, not the wire's);
 the length ``L0·((ε_L + σ·ΔC)·ξ + ε_mix·ξ(1-ξ) + α·(T - 22 °C))`` plus a sensor zero, with
 ε_L, ε_mix, α and the zero solved linearly. With several loads the thermal hysteresis narrows
 with stress (paper Fig. 11 trend).
@@ -156,13 +158,13 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
             amb = amb + drift / 3600.0 * (g.t - g.t[0])
         temp_in, heat_k, rate = _NONE, k_a2 * g.i2, g.dt / p["tau_s"]
         amb = np.ascontiguousarray(amb, dtype=float)
-        tau_h, tau_c = p.get("tau_heat_s", 0.0), p.get("tau_cool_s", 0.0)
+        tau_c = p.get("tau_cool_s", 0.0)
+        tau_h = p["tau_heat_s"] if "tau_heat_s" in p else p.get("heat_lag_ratio", 0.0) * tau_c
     return _wire_kernel(
         thermo, temp_in, heat_k, amb, rate,
         p.get("beta", 0.0), p.get("lat_k", 0.0), p.get("conv_k", 0.0),
         *_foh(g.dt, tau_h), *_foh(g.dt, tau_c),
         tt.as_c, tt.af_c, tt.h_shape, tt.mf_c, tt.ms_c, tt.c_shape, p.get("memory", 0.0),
-        p.get("kin_sqrt", 0.0) / math.sqrt(g.dt),
     )  # fmt: skip
 
 
@@ -206,8 +208,7 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
 
 @numba.njit(cache=True)
 def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
-                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory,
-                 kin):  # fmt: skip
+                 bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory):  # fmt: skip
     """One pass over the grid (the same discrete equations as the plant's ``Plant.step``).
 
     ``heat_k[n]`` = R·I²/conductance (K) over step n, ``rate`` = dt/τ; the heat input scales
@@ -216,9 +217,7 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
     reversal; ξ lags its equilibrium value by (b, c1, c0) per branch (see :func:`_foh`).
     ``memory`` blends the branch from a reversal (T_r, ξ_r): 0 scales the major branch through
     the reversal point (the paper's moving common point; Liang–Rogers, Brinson), 1 holds ξ_r
-    until the major branch comes back to it (a Preisach model's wiping-out memory). ``kin``
-    (K per √K, i.e. kin_sqrt/√dt): thermally activated nucleation moves the branch away from
-    the direction of travel by kin_sqrt·√|dT/dt| (heating later, cooling earlier)."""
+    until the major branch comes back to it (a Preisach model's wiping-out memory)."""
     n = len(temp_in) if thermo else len(amb)
     temp_out = np.empty(n)
     xi_out = np.empty(n)
@@ -248,21 +247,20 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                 new = t_inf + (temp - t_inf) * a_const
         d = new - temp
         dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
-        sh_k = kin * math.sqrt(abs(d)) if kin != 0.0 else 0.0
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
             if dn > 0:
-                ref = xi_r / max(_branch(temp - sh_k, as_c, af_c, sh, 1.0), 1e-12)
+                ref = xi_r / max(_branch(temp, as_c, af_c, sh, 1.0), 1e-12)
             else:
-                ref = (1.0 - xi_r) / max(_branch(temp + sh_k, mf_c, ms_c, sc, -1.0), 1e-12)
+                ref = (1.0 - xi_r) / max(_branch(temp, mf_c, ms_c, sc, -1.0), 1e-12)
         xi_eq_old = xi_eq
         if dn > 0:
-            major = _branch(new - sh_k, as_c, af_c, sh, 1.0)
+            major = _branch(new, as_c, af_c, sh, 1.0)
             xi_eq = min((1.0 - memory) * ref * major + memory * min(major, xi_r), xi_r)
             xi_new = bh * xi + c1h * xi_eq + c0h * xi_eq_old
         elif dn < 0:
-            major = _branch(new + sh_k, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
+            major = _branch(new, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
             xi_eq = max((1.0 - memory) * (1.0 - ref * major) + memory * max(1.0 - major, xi_r),
                         xi_r)  # fmt: skip
             xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old

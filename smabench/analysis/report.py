@@ -93,6 +93,7 @@ def summary(an: Analysis) -> dict:
         cands[c] = {
             "heldout_rmse_mm": an.rmse[c],
             "gain": row["gain"],
+            "unit_gain": row["unit_gain"],
             "p_value": row["p_value"],
             "significant": row["significant"],
             "parameter": {key: params[key]},

@@ -173,10 +173,9 @@ def test_atomic_write_leaves_the_old_file_on_error(tmp_path):
 
 
 def test_flag_bits_are_defined_once_with_the_format():
-    from smabench.drivers.displacement import FLAG_NAMES as SENSOR_BITS
-
     import smabench.bench.runtime as runtime
     import smabench.sessions as sessions
+    from smabench.drivers.displacement import FLAG_NAMES as SENSOR_BITS
 
     assert runtime.FLAG_SENSOR_INVALID is sessions.FLAG_SENSOR_INVALID
     bits = list(sessions.FLAG_NAMES)
@@ -282,3 +281,31 @@ def test_fast_and_strict_readers_agree(tmp_path):
             assert list(fast[c]) == list(strict[c]) == ["pid", "ff", ""]
         else:
             np.testing.assert_array_equal(fast[c], strict[c])
+
+
+def test_compiled_reader_is_exact_on_what_the_writer_writes(tmp_path):
+    """smabench.fastcsv against Python's float() on the writer's own formatting, plus the
+    cells it must hand to the strict reader."""
+    from smabench.fastcsv import parse_numeric
+
+    rng = np.random.default_rng(5)
+    x = np.concatenate([rng.normal(0, 1, 3000) * 10.0 ** rng.integers(-8, 8, 3000),
+                        [0.0, -0.0, 1e-9, 123456.789012345, -2.5e-7]])  # fmt: skip
+    folder = tmp_path / "s"
+    write_session(folder, {}, {"t_s": x, "current_A": -x, "position_mm": x * 3})
+    text = (folder / "samples.csv").read_bytes()
+    head, _, body = text.partition(b"\n")
+    header = head.decode().split(",")
+    got = parse_numeric(body, header, ["t_s", "position_mm", "voltage_V"])
+    cells = [line.split(b",")[0] for line in body.splitlines()]
+    ref = np.array([float(c) for c in cells])
+    short = np.array([len(c.lstrip(b"-").replace(b".", b"").lstrip(b"0")) <= 15 for c in cells])
+    assert short.sum() > 2500
+    np.testing.assert_array_equal(got["t_s"][short], ref[short])  # exact up to 15 digits
+    np.testing.assert_array_max_ulp(got["t_s"], ref, maxulp=1)  # 16-17 digits: within 1 ulp
+    assert np.isnan(got["voltage_V"]).all()
+    for bad in (b"1,2\n3\n", b"1,x\n", b"1,2,3\n", b"1e,2\n", b"1.5.2,3\n"):
+        assert parse_numeric(bad, ["a", "b"], ["a", "b"]) is None, bad
+    ok = parse_numeric(b"-1.5e-3,NaN\n+2,\ninf,-7", ["a", "b"], ["a", "b"])
+    np.testing.assert_array_equal(ok["a"], [-1.5e-3, 2.0, np.inf])
+    np.testing.assert_array_equal(ok["b"], [np.nan, np.nan, -7.0])

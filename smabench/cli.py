@@ -77,67 +77,6 @@ def cmd_import(args: argparse.Namespace) -> int:
     return 0
 
 
-# --------------------------------------------------------------------------- fit
-def loop_temperature(session) -> tuple[np.ndarray, str]:
-    """The temperature a loop is fitted against: measured if present, else the estimate."""
-    for col in ("temperature_C", "temperature_est_C"):
-        if session.has(col):
-            return session.data[col], col
-    raise CliError(
-        f"{session.path}: no temperature_C or temperature_est_C values to fit a loop against"
-    )
-
-
-def cmd_fit(args: argparse.Namespace) -> int:
-    from smabench.physics.identify import MODELS, fit_loop
-    from smabench.sessions import load_session
-
-    if args.model not in MODELS:
-        raise CliError(f"unknown model {args.model!r}; choose from {', '.join(MODELS)}")
-    session = load_session(args.session)
-    temperature_c, tcol = loop_temperature(session)
-    position_mm = session.data["position_mm"]
-    fit = fit_loop(temperature_c, position_mm, args.model)
-    report = {
-        "model": fit.model,
-        "session": str(session.path),
-        "temperature_column": tcol,
-        "n_points": int(fit.n_points),
-        "rmse_mm": float(fit.rmse_mm),
-        "nrmse_percent": float(fit.nrmse_percent),
-        "ard_percent": float(fit.ard_percent),
-        "parameters": {k: float(v) for k, v in fit.parameters.items()},
-    }
-    print(f"model {fit.model} on {session.path} ({fit.n_points} points, vs {tcol})")
-    for k, v in report["parameters"].items():
-        print(f"  {k:>24s} = {v:.6g}")
-    print(
-        f"  rmse = {fit.rmse_mm:.5f} mm   nrmse = {fit.nrmse_percent:.3f} % of stroke   "
-        f"ard = {fit.ard_percent:.3f} %"
-    )
-    if args.json:
-        _write_json_atomic(args.json, report)
-        print(f"json written: {args.json}")
-    if args.plot:
-        from smabench.plotting import save_loop_png
-
-        ok = np.isfinite(temperature_c) & np.isfinite(position_mm)
-        save_loop_png(
-            args.plot,
-            temperature_c[ok],
-            position_mm[ok],
-            [
-                (
-                    f"model {fit.model} (nrmse {fit.nrmse_percent:.2f} %)",
-                    fit.predict(temperature_c[ok]),
-                )
-            ],
-            title=f"{session.path.name}",
-        )
-        print(f"plot written: {args.plot}")
-    return 0
-
-
 # --------------------------------------------------------------------------- simulate
 def simulate_session(
     out: str | Path,
@@ -374,12 +313,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="session folder to create (must not exist)")
     s.set_defaults(func=cmd_import)
 
-    s = sub.add_parser("fit", help="identify a loop model on a session and report its error")
-    s.add_argument("session", help="session folder or CSV")
-    s.add_argument("--model", default="1", help="1, 2, preisach or sigmoid (default 1)")
-    s.add_argument("--json", help="write the parameters and errors as JSON here")
-    s.add_argument("--plot", help="write a PNG overlaying measured and model loops here")
-    s.set_defaults(func=cmd_fit)
+    from smabench.fit_cli import add_commands as add_fit_commands
+
+    add_fit_commands(sub)
 
     s = sub.add_parser("simulate", help="simulate heating cycles on the plant into a session")
     s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")

@@ -1,0 +1,237 @@
+"""Campaigns: plan validation, dry-run budget, load-change prompt, crash and resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from smabench import plan as planmod
+from smabench.plan import PlanError, dry_run, execute, load_plan, load_state, new_state
+from smabench.sessions import SessionWriter, load_session
+
+REPO = Path(__file__).resolve().parent.parent
+EXAMPLE = REPO / "sessions" / "plans" / "example.toml"
+
+PLAN = """
+[plan]
+name = "t"
+out = "{out}"
+mock_speed = 5
+[[step]]
+name = "a"
+protocol = "cycles"
+load_kg = 1.0
+cycles = 2
+current_a = 1.0
+heat_s = 2.0
+cool_timeout_s = 8.0
+rest_s = 4.0
+[[step]]
+name = "b"
+protocol = "cycles"
+load_kg = 2.0
+cycles = 1
+current_a = 1.5
+heat_s = 3.0
+cool_timeout_s = 10.0
+[[step]]
+name = "c"
+protocol = "inner"
+load_kg = 2.0
+cycles = 1
+current_a = 1.2
+heat_s = 3.0
+cool_timeout_s = 10.0
+inner_heat_s = 0.5
+inner_cool_s = 1.5
+"""
+
+
+def _plan(tmp_path: Path, text: str = PLAN) -> Path:
+    p = tmp_path / "plan.toml"
+    p.write_text(text.replace("{out}", str(tmp_path / "out")))
+    return p
+
+
+def test_example_plan_is_valid_and_its_dry_run_fits_in_minutes(run_cli):
+    plan = load_plan(EXAMPLE)
+    assert len(plan.steps) == 3 and plan.settings["mock_speed"] > 1
+    proc = run_cli("plan", "run", EXAMPLE, "--dry-run", check=True)
+    assert "load change" in proc.stdout and "limits:" in proc.stdout
+    total = sum(planmod.step_budget(plan, s)["duration_s"] for s in plan.steps)
+    assert total / plan.settings["mock_speed"] < 120  # a few minutes on the mock, at most
+
+
+def test_dry_run_budget_numbers(tmp_path):
+    from smabench.physics.wire import PRESETS
+
+    plan = load_plan(_plan(tmp_path))
+    r = PRESETS["paper"].resistance_ohm(0.0)
+    a, b, c = (planmod.step_budget(plan, s) for s in plan.steps)
+    assert a["duration_s"] == pytest.approx(2 * (2 + 8) + 4)
+    assert a["energy_j"] == pytest.approx(1.0**2 * r * 2 * 2.0)
+    assert b["peak_current_a"] == 1.5 and b["energy_j"] == pytest.approx(1.5**2 * r * 3.0)
+    assert c["energy_j"] == pytest.approx(1.2**2 * r * (3.0 + 0.25 * 10.0))
+    text = "\n".join(dry_run(plan))
+    assert "peak current 1.50 A" in text and text.count("load change") == 1
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (("cycles = 2", "cycles = 0"), r"step 1: cycles = 0 is out of range \[1, 1e\+06\]"),
+        (("current_a = 1.5", "current_a = 1.5\ncurrant = 1"), "step 2: unknown key.*currant"),
+        (('name = "b"', 'name = "a"'), "step names must be unique"),
+        (('protocol = "inner"', 'protocol = "sine"'), "protocol 'sine' is not one of"),
+        (("load_kg = 1.0", "load = 1.0"), "unknown key"),
+        (("[plan]", "[plam]"), "unknown table"),
+        (("cycles = 2", "cycles = 2.5"), "cycles must be int"),
+        (("current_a = 1.5", "current_a = 2.4"), "step 2.*current"),
+        (("heat_s = 2.0", "heat_s = [2"), "not valid TOML"),
+    ],
+)
+def test_plan_validation_names_the_problem(tmp_path, capsys, edit, match):
+    from smabench.cli import main
+
+    text = PLAN.replace(*edit, 1)
+    p = _plan(tmp_path, text)
+    with pytest.raises(PlanError, match=match):
+        load_plan(p)
+    capsys.readouterr()
+    assert main(["plan", "run", str(p), "--dry-run"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("smabench plan: error:")
+
+
+class FakeBench:
+    """Steps recorded as small real sessions; can 'crash' (the process dies) inside a step."""
+
+    def __init__(self, crash_in: str | None = None) -> None:
+        self.crash_in = crash_in
+        self.ran: list[str] = []
+
+    def __call__(self, plan, step, sid, dev):
+        from smabench.bench.runtime import RunResult
+
+        folder = plan.folder / sid
+        w = SessionWriter(folder, {"load_kg": step["load_kg"]})
+        w.append({"t_s": 0.0, "current_A": step["current_a"], "position_mm": 1.0, "cycle": 0})
+        self.ran.append(sid)
+        if step["name"] == self.crash_in:
+            self.crash_in = None
+            raise SystemExit("power lost")  # the session stays 'running', as after a crash
+        w.close()
+        return folder, RunResult("completed", "protocol completed", 1)
+
+
+def test_load_change_prompt_stop_and_resume(tmp_path, monkeypatch):
+    fake = FakeBench()
+    monkeypatch.setattr(planmod, "_run_step_session", fake)
+    plan = load_plan(_plan(tmp_path))
+    asked: list[tuple] = []
+    slept: list[float] = []
+
+    def refuse(load, prev, step):
+        asked.append((load, prev, step))
+        return False
+
+    state = new_state(plan)
+    code = execute(plan, state, planmod.Devices(mock=True), ask=refuse, sleep=slept.append)
+    assert code == 3 and asked == [(2.0, 1.0, "b")] and fake.ran == ["01-a"]
+    assert slept == [pytest.approx(4.0 / 5)]  # the rest, at mock speed
+    state, folder = load_state(plan.folder)
+    assert [s["status"] for s in state["steps"]] == ["done", "pending", "pending"]
+    code = execute(plan, state, planmod.Devices(mock=True), ask=lambda *a: True,
+                   sleep=slept.append)  # fmt: skip
+    assert code == 0 and fake.ran == ["01-a", "02-b", "03-c"]
+    meta = json.loads((plan.folder / "03-c" / "session.json").read_text())
+    assert meta["plan"]["step"] == "c" and meta["plan"]["previous_session"].endswith("02-b")
+    assert json.loads((plan.folder / "01-a" / "session.json").read_text())["plan"]["index"] == 1
+
+
+def test_crash_inside_a_step_resumes_there_with_the_sessions_linked(tmp_path, monkeypatch):
+    fake = FakeBench(crash_in="b")
+    monkeypatch.setattr(planmod, "_run_step_session", fake)
+    plan = load_plan(_plan(tmp_path))
+    with pytest.raises(SystemExit):
+        execute(plan, new_state(plan), planmod.Devices(mock=True), ask=lambda *a: True,
+                sleep=lambda s: None)  # fmt: skip
+    state, _ = load_state(plan.folder / "plan-state.json")
+    assert [s["status"] for s in state["steps"]] == ["done", "running", "pending"]
+    assert load_session(plan.folder / "02-b").meta["status"] == "running"  # readable anyway
+    code = execute(plan, state, planmod.Devices(mock=True), ask=lambda *a: True,
+                   sleep=lambda s: None)  # fmt: skip
+    assert code == 0 and fake.ran == ["01-a", "02-b", "02-b-r1", "03-c"]
+    final, _ = load_state(plan.folder)
+    b = final["steps"][1]
+    assert b["status"] == "done" and b["session"].endswith("02-b-r1")
+    assert b["interrupted"] == [str(plan.folder / "02-b")]
+    meta = json.loads((plan.folder / "02-b-r1" / "session.json").read_text())
+    assert meta["plan"]["interrupted_sessions"] == [str(plan.folder / "02-b")]
+
+
+def test_resume_refuses_a_changed_plan_and_run_refuses_an_existing_state(tmp_path, monkeypatch,
+                                                                         capsys):  # fmt: skip
+    from smabench.cli import main
+
+    monkeypatch.setattr(planmod, "_run_step_session", FakeBench())
+    p = _plan(tmp_path)
+    plan = load_plan(p)
+    execute(plan, new_state(plan), planmod.Devices(mock=True), ask=lambda *a: False)
+    capsys.readouterr()
+    assert main(["plan", "run", str(p), "--mock"]) == 2
+    assert "plan resume" in capsys.readouterr().err
+    p.write_text(p.read_text().replace("cycles = 1", "cycles = 2"))
+    assert main(["plan", "resume", str(plan.folder), "--mock"]) == 2
+    assert "changed since the plan started" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_example_plan_on_the_mock_killed_and_resumed(tmp_path):
+    """End to end on the mock bench: the example plan, SIGKILL during step 2 (a power loss),
+    `plan resume` finishes it; every step's session is complete and linked."""
+    text = EXAMPLE.read_text().replace('out = "sessions/plans-out"', f'out = "{tmp_path}"')
+    p = tmp_path / "example.toml"
+    p.write_text(text)
+    cmd = [sys.executable, "-m", "smabench.cli", "plan", "run", str(p), "--mock"]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                            start_new_session=True)  # fmt: skip
+    lines = []
+    deadline = time.monotonic() + 240
+    for line in proc.stdout:  # wait on the output, not on time
+        lines.append(line)
+        if ">>> step cycles-2kg" in line:
+            proc.stdin.write("\n")
+            proc.stdin.flush()
+        if line.startswith("step 2/3"):
+            break
+        assert time.monotonic() < deadline, "".join(lines)
+    state_file = tmp_path / "example" / "plan-state.json"
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "example" / "02-cycles-2kg" / "samples.csv").exists():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    os.killpg(proc.pid, signal.SIGKILL)  # the whole process group: the plan and its mock
+    proc.wait()
+    state = json.loads(state_file.read_text())
+    assert [s["status"] for s in state["steps"]] == ["done", "running", "pending"]
+    res = subprocess.run([sys.executable, "-m", "smabench.cli", "plan", "resume",
+                          str(tmp_path / "example"), "--mock"], input="", capture_output=True,
+                         text=True, timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "resuming at cycles-2kg" in res.stdout
+    state = json.loads(state_file.read_text())
+    assert [s["status"] for s in state["steps"]] == ["done", "done", "done"]
+    for s in state["steps"]:
+        sess = load_session(s["session"])
+        assert sess.meta["status"] == "completed" and sess.meta["plan"]["step"] == s["name"]
+    assert state["steps"][1]["interrupted"] == [str(tmp_path / "example" / "02-cycles-2kg")]
+    shutil.rmtree(tmp_path / "example", ignore_errors=True)

@@ -268,20 +268,26 @@ static void tick_init(void)
 static const uint8_t adc_slots[8] = {HAL_ADC_CURRENT, HAL_ADC_CURRENT, HAL_ADC_CURRENT,
                                      HAL_ADC_SUPPLY,  HAL_ADC_CURRENT, HAL_ADC_CURRENT,
                                      HAL_ADC_CURRENT, HAL_ADC_AMBIENT};
-static volatile uint16_t adc_sum[HAL_ADC_CHANNELS];
+static volatile uint32_t adc_sum[HAL_ADC_CHANNELS]; /* NTC: ~100 conversions per read */
 static volatile uint8_t adc_n[HAL_ADC_CHANNELS];
 static uint16_t adc_last[HAL_ADC_CHANNELS];
 static volatile uint8_t adc_slot;
+static volatile uint8_t adc_busy; /* a conversion started whose result the ADC ISR has not taken */
 
-/* Every PWM period (64 us) at BOTTOM: start a conversion unless one is running. */
+/* Every PWM period (64 us) at BOTTOM: start a conversion unless the last one is still running or
+ * its result not yet taken (the overflow vector outranks the ADC's: without the flag a new
+ * conversion could start on the old channel before the ADC ISR moved the multiplexer on). */
 ISR(TIMER1_OVF_vect)
 {
-    if (!(ADCSRA & _BV(ADSC)))
+    if (!adc_busy) {
+        adc_busy = 1;
         ADCSRA |= _BV(ADSC);
+    }
 }
 
 ISR(ADC_vect)
 {
+    adc_busy = 0;
     uint8_t ch = adc_slots[adc_slot];
     if (adc_n[ch] < 255u) {
         adc_sum[ch] += ADC;
@@ -293,7 +299,7 @@ ISR(ADC_vect)
 
 uint16_t hal_adc_q4(uint8_t channel)
 {
-    uint16_t sum;
+    uint32_t sum;
     uint8_t n;
     if (channel >= HAL_ADC_CHANNELS)
         return 0;
@@ -305,7 +311,7 @@ uint16_t hal_adc_q4(uint8_t channel)
         adc_n[channel] = 0;
     }
     if (n)
-        adc_last[channel] = (uint16_t)((((uint32_t)sum << 4) + n / 2u) / n);
+        adc_last[channel] = (uint16_t)(((sum << 4) + n / 2u) / n);
     return adc_last[channel];
 }
 

@@ -157,7 +157,7 @@ double periph_ntc_mv(double model_mv)
     if (ntc_fault == 1)
         return 0.0; /* NTC open: the fixed resistor pulls ADC2 to ground */
     if (ntc_fault == 2)
-        return 5000.0; /* NTC shorted: ADC2 at AVcc */
+        return 4998.0; /* NTC shorted: ADC2 at AVcc (code 1023; simavr wraps 5000 mV to 0) */
     return model_mv;
 }
 

@@ -142,8 +142,8 @@ static void load_hex(avr_t *avr, const char *path, uint32_t *lo, uint32_t *hi)
         switch (type) {
         case 0:
             if ((uint64_t)a + n > (uint64_t)avr->flashend + 1)
-                boot_die("%s:%u: data at 0x%05x is beyond the flash (0x%05x)", path, lineno, a,
-                         avr->flashend + 1);
+                boot_die("%s:%u: data at 0x%05x is beyond the end of the flash (0x%05x): no chip "
+                         "can hold this image", path, lineno, a + n - 1, avr->flashend + 1);
             memcpy(avr->flash + a, data, n);
             bytes += n;
             if (n && a < *lo)

@@ -276,3 +276,35 @@ def test_a_failed_verify_is_reported_not_retried_at_another_baud(capsys, monkeyp
     code, _, err = flash_cli(capsys, "--port", port, "--hex", hex_path)
     assert code == 1 and "verification mismatch" in err and "115200" in err
     assert len((fake / "avrdude.log").read_text().splitlines()) == 1
+
+
+def hex_extent(path: Path) -> tuple[int, int]:
+    """[lowest, highest] byte address with data in an Intel hex file (no extended records)."""
+    lo, hi = 1 << 20, -1
+    for line in path.read_text().split():
+        n, addr, kind = int(line[1:3], 16), int(line[3:7], 16), line[7:9]
+        if kind == "00" and n:
+            lo, hi = min(lo, addr), max(hi, addr + n - 1)
+    return lo, hi
+
+
+DEBIAN_OPTIBOOT = OLD_NANO_HEX.parents[1] / "optiboot" / "optiboot_atmega328.hex"
+
+
+@pytest.mark.emulator
+@requires_emulator
+def test_debians_optiboot_overflows_the_chip_and_ours_fits():
+    """Debian rebuilds optiboot with its avr-gcc: 532 B from 0x7E00, past the 32 KB flash. The
+    emulator refuses it as avrdude would; `make -C firmware optiboot` builds the same source to
+    fit the 512 B boot section, with the version word at 0x7FFE."""
+    if not DEBIAN_OPTIBOOT.is_file():
+        pytest.skip("apt-get install arduino-core-avr")
+    lo, hi = hex_extent(DEBIAN_OPTIBOOT)
+    assert lo == 0x7E00 and hi > 0x7FFF  # the package's image as shipped
+    proc = subprocess.run(
+        [str(SIM_BIN), "--bootloader", str(DEBIAN_OPTIBOOT), "--blank"],
+        stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=30,
+    )  # fmt: skip
+    assert proc.returncode == 2 and "no chip can hold this image" in proc.stderr
+    lo, hi = hex_extent(BOOTLOADER_HEX)
+    assert lo == 0x7E00 and hi == 0x7FFF

@@ -273,7 +273,9 @@ def cmd_bench_loop(args: argparse.Namespace) -> int:
     for firmware in [f.strip() for f in args.firmware.split(",") if f.strip()]:
         for rate in [float(r) for r in args.rates.split(",") if r.strip()]:
             print(f"{firmware} firmware, {rate:g} Hz, {args.duration_s:g} s …", flush=True)
-            rows.append(loop_timing(rate, firmware, args.duration_s, args.sensor))
+            rows.append(
+                loop_timing(rate, firmware, args.duration_s, args.sensor, args.adapter_latency_ms)
+            )
     print(format_rows(rows))
     return 0
 
@@ -399,6 +401,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--firmware", default="python,emulated", help="current drivers to use (python,emulated)"
     )
     b.add_argument("--sensor", choices=["tcp", "rtu"], default="tcp", help="Modbus transport")
+    b.add_argument(
+        "--adapter-latency-ms",
+        type=float,
+        default=0.0,
+        metavar="MS",
+        help="the mock's sensor holds every answer this long, as an FTDI USB/RS-485 adapter "
+        "(16 ms by default on a real one; drivers/sensors/README.md)",
+    )
     b.set_defaults(func=cmd_bench_loop)
     b = bsub.add_parser("link", help="device link latency and telemetry rate (real transports)")
     b.add_argument(

@@ -66,7 +66,10 @@ def start_heating(qtbot, w: MainWindow) -> None:
     """A long heating cycle, running with the output on (the driver measures > 0.5 A)."""
     short_cycles(qtbot, w, cycles=3, heat_s=60.0)
     qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: w.state == State.RUNNING, timeout=30000)
+    # running, or stopped trying (refused, or the connection failed): then say what it said
+    qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
+        w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
+    assert w.state == State.RUNNING, (w.state, w.message.text(), w.last_end, w.sm.history[-4:])
     qtbot.waitUntil(lambda: (w.status.get("readout", {}).get("current_a") or 0) > 0.5,
                     timeout=20000)  # fmt: skip
 

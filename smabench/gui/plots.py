@@ -133,9 +133,9 @@ class TimePlots(pg.GraphicsLayoutWidget):
         self.p_current = self.addPlot(row=0, col=0)
         self.p_temp = self.addPlot(row=1, col=0)
         self.p_pos = self.addPlot(row=2, col=0)
-        for p, label, unit in ((self.p_current, "current", "A"),
-                               (self.p_temp, "temperature", "°C"),
-                               (self.p_pos, "position", "mm")):  # fmt: skip
+        for p, label, unit in ((self.p_current, "I", "A"),  # short: three stacked plots
+                               (self.p_temp, "T", "°C"),
+                               (self.p_pos, "x", "mm")):  # fmt: skip
             label_axis(p, "left", label, unit)
             p.showGrid(x=False, y=False)
             p.setDownsampling(auto=True, mode="peak")
@@ -147,9 +147,10 @@ class TimePlots(pg.GraphicsLayoutWidget):
         label_axis(self.p_pos, "bottom", "time", "s")
         self.p_current.hideAxis("bottom")
         self.p_temp.hideAxis("bottom")
-        self.c_set = self.p_current.plot(pen=pg.mkPen((150, 150, 150), width=1), name="set")
-        self.c_meas = self.p_current.plot(pen=pg.mkPen(BRIGHT, width=1), name="measured")
-        self.c_temp = self.p_temp.plot(pen=pg.mkPen((200, 40, 40), width=1), name="estimated")
+        self.c_set = self.p_current.plot(pen=pg.mkPen((150, 150, 150), width=1), name="current set")
+        self.c_meas = self.p_current.plot(pen=pg.mkPen(BRIGHT, width=1), name="current measured")
+        self.c_temp = self.p_temp.plot(pen=pg.mkPen((200, 40, 40), width=1),
+                                       name="wire temperature (estimated)")
         self.c_pos = self.p_pos.plot(pen=pg.mkPen((30, 90, 200), width=1), name="position")
         self.c_setpoint = self.p_pos.plot(pen=pg.mkPen((40, 160, 60), width=1), name="setpoint")
         self.follow = True

@@ -160,7 +160,7 @@ class MainWindow(QtWidgets.QMainWindow):
         v.setSpacing(4)
         row = QtWidgets.QHBoxLayout()
         self.estop_button = QtWidgets.QPushButton(f"E-STOP\n{KEY_NAMES}")
-        self.estop_button.setMinimumSize(190, 64)
+        self.estop_button.setMinimumSize(220, 64)
         self.estop_button.setToolTip(f"Output off at once ({KEY_NAMES}, from anywhere)")
         self.estop_button.setStyleSheet(
             "QPushButton { background: #c62828; color: white; font-size: 20px; font-weight: bold;"
@@ -979,10 +979,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.times.setText(f"elapsed {el:.0f} s   ended: {status}")
         folder = end.get("folder")
         n = end.get("samples")
-        text = f"Session {status}: {reason}"
-        if n is not None:
-            text += f" {n} samples"
-        text += f", saved in {folder}." if folder else " Nothing was saved."
+        head = "Session completed." if status == "completed" else f"Session {status}: {reason}"
+        samples = f" {n} samples" if n is not None else ""
+        text = (f"{head}{samples} saved in {folder}." if folder
+                else f"{head} Nothing was saved.")  # fmt: skip
         self.session_folder = None
         lost = words.device_lost(end.get("reason", ""))
         if self.state != State.ESTOPPED:

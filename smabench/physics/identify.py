@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -393,3 +393,75 @@ def fit_loop(
     result.parameters = {k: float(v) for k, v in params.items()}
     log.info("model %s: nrmse %.3f %% of stroke", model, result.nrmse_percent)
     return result
+
+
+# --------------------------------------------------------------------------- fitted models as data
+DOCUMENT_VERSION = 1
+
+
+def model_document(fit: FitResult) -> dict:
+    """A fitted model as JSON-ready data that :func:`fit_from_document` rebuilds exactly."""
+    m = fit.loop_model
+    if fit.model == "preisach":
+        state = {
+            "levels_c": m.levels_c.tolist(),
+            "weights_mm": m.weights_mm.tolist(),
+            "offset_mm": m.offset_mm,
+            "slope_mm_per_k": m.slope_mm_per_k,
+            "t_ref_c": m.t_ref_c,
+            "sign": m.sign,
+        }
+    else:
+        state = asdict(m)
+    return {
+        "document": "smabench fitted loop model",
+        "version": DOCUMENT_VERSION,
+        "model": fit.model,
+        "deadband_k": fit.deadband_k,
+        "state": state,
+    }
+
+
+def fit_from_document(doc: dict) -> FitResult:
+    """Rebuild a fitted model from :func:`model_document` data (FitError when it is not one)."""
+    from smabench.physics.preisach import PreisachModel
+
+    if not isinstance(doc, dict) or doc.get("document") != "smabench fitted loop model":
+        raise FitError("not a fitted model (write one with `smabench fit … --json FILE`)")
+    if doc.get("version") != DOCUMENT_VERSION:
+        raise FitError(f"fitted-model document version {doc.get('version')!r} is not supported")
+    kind, s = doc.get("model"), doc.get("state") or {}
+    try:
+        if kind == "1":
+            m = Model1(**{**s, "cp": CommonPoints(**s["cp"])})
+        elif kind == "2":
+            m = Model2(**{**s, "cp": CommonPoints(**s["cp"])})
+        elif kind == "sigmoid":
+            m = SigmoidModel(**{
+                **s,
+                "heating_branch": FractionBranch(**s["heating_branch"]),
+                "cooling_branch": FractionBranch(**s["cooling_branch"]),
+            })  # fmt: skip
+        elif kind == "preisach":
+            arrays = {k: np.asarray(s[k], dtype=float) for k in ("levels_c", "weights_mm")}
+            m = PreisachModel(**{**s, **arrays})
+        else:
+            raise FitError(f"unknown model {kind!r} in the document")
+    except (KeyError, TypeError, ValueError) as exc:
+        raise FitError(f"broken fitted-model document: {exc}") from None
+    return FitResult(str(kind), dict(m.parameters()), math.nan, math.nan, math.nan, 0, m,
+                     float(doc.get("deadband_k", 1.0)))  # fmt: skip
+
+
+def nrmse_on(fit: FitResult, temperature_c, position_mm, scored=None) -> float:
+    """nrmse (% of the scored samples' stroke) of the model run along the whole sequence, history
+    included, scored on ``scored`` (a boolean mask; all samples when None)."""
+    t = np.asarray(temperature_c, dtype=float)
+    y = np.asarray(position_mm, dtype=float)
+    pred = fit.predict(t)
+    mask = np.ones(t.size, bool) if scored is None else np.asarray(scored, bool)
+    mask &= np.isfinite(pred) & np.isfinite(y)
+    if mask.sum() < 2:
+        raise FitError("fewer than 2 samples to score the model on")
+    stroke = float(np.ptp(y[mask])) or 1.0
+    return _nrmse(pred[mask] - y[mask], stroke)

@@ -15,6 +15,8 @@ from independent_sim import WireWorld, make, make_thermo
 from smabench.analysis.cli import main
 from smabench.analysis.core import EFFECT_PARAMETER
 
+pytestmark = pytest.mark.slow
+
 # effect: (low, high, relative tolerance of the headline parameter, loads kg, cycles)
 CASES = {
     "phase_resistance": (15.0, 40.0, 0.25, [2.0], 9),

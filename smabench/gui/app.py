@@ -45,7 +45,8 @@ def cmd_gui(args: argparse.Namespace) -> int:
         win.connect_devices()
     if args.run_demo:
         win.fields["load_kg"].set_value(2.0)
-        win.fields["cycles"].set_value(3)
+        win.fields["protocol.cycles"].set_value(3)
+        win.fields["protocol.current_a"].set_value(1.4)
         QtCore.QTimer.singleShot(100, win.start_experiment)
     started = time.monotonic()
     if args.screenshot or args.quit_after:

@@ -89,6 +89,7 @@ def estop_latency_s(qtbot, w: MainWindow, pressed_t: float) -> float:
     return report["output_off_t"] - pressed_t
 
 
+@pytest.mark.slow
 def test_short_protocol_fills_the_plots_and_is_listed(qtbot, win, tmp_path):
     short_cycles(qtbot, win)
     qtbot.mouseClick(win.start_button, Qt.MouseButton.LeftButton)
@@ -106,7 +107,9 @@ def test_short_protocol_fills_the_plots_and_is_listed(qtbot, win, tmp_path):
     assert item.text(2) == "cycles" and item.text(3) == "completed" and item.text(1) == "2 kg"
 
 
-@pytest.mark.parametrize("key", [Qt.Key.Key_Escape, Qt.Key.Key_F12])
+@pytest.mark.parametrize(
+    "key", [Qt.Key.Key_Escape, pytest.param(Qt.Key.Key_F12, marks=pytest.mark.slow)]
+)
 def test_estop_key_with_focus_in_a_field(qtbot, win, key):
     start_heating(qtbot, win)
     field = win.fit_cycle  # a field enabled during a run (the Sessions tab)
@@ -134,6 +137,7 @@ def test_estop_with_nothing_connected_says_so(qtbot, win):
     assert win.state == State.DISCONNECTED and win.start_button.isEnabled()
 
 
+@pytest.mark.slow
 def test_lost_device_closes_the_session_and_offers_connect(qtbot, win):
     start_heating(qtbot, win)
     os.kill(win.link.ports["mock_pid"], signal.SIGKILL)
@@ -159,6 +163,7 @@ def test_bench_gui_frame_time_with_an_hour_of_data(qtbot):
     assert 0 < f["median_ms"] <= f["p99_ms"]
 
 
+@pytest.mark.slow
 def test_controller_mode_switches_live(qtbot, win):
     """A sine reference under PID, switched to FF+PID mid-run from the controller panel."""
     from smabench.sessions import load_session
@@ -186,3 +191,43 @@ def test_controller_mode_switches_live(qtbot, win):
     jump = abs(i[k] - i[k - 1])
     usual = np.percentile(np.abs(np.diff(i[:k])), 99)
     assert jump <= max(0.15, 2 * usual), (jump, usual)
+
+
+def test_state_machine_latches_the_estop_and_refuses_what_a_state_does_not_allow():
+    from smabench.gui.state import StateMachine, controls_for
+
+    sm = StateMachine()
+    assert sm.fire("start") == State.DISCONNECTED  # ignored: not connected
+    for event, want in (("connect", State.CONNECTING), ("connected", State.IDLE),
+                        ("start", State.STARTING), ("refused", State.IDLE),
+                        ("start", State.STARTING), ("started", State.RUNNING),
+                        ("pause", State.PAUSED), ("estop", State.ESTOPPED),
+                        ("ended", State.ESTOPPED), ("lost", State.ESTOPPED),
+                        ("acknowledge_disconnected", State.DISCONNECTED)):  # fmt: skip
+        assert sm.fire(event) == want, (event, sm.history)
+    c = controls_for(State.ESTOPPED)
+    assert not c.start and c.acknowledge
+    c = controls_for(State.RUNNING)
+    assert not c.start and c.stop and c.pause and not c.session_fields and c.live_fields
+    assert controls_for(State.ERROR).connect_label == "Connect"
+    assert controls_for(State.IDLE).connect_label == "Disconnect"
+
+
+@pytest.mark.parametrize("raw, want", [
+    ("start: ValueError: protocol 'sine' is a position reference: it needs a controller "
+     "(--controller pid|ff|ffpid)", "The sine protocol is a position reference"),
+    ("current driver telemetry lost for 0.31 s", "The current driver stopped answering"),
+    ("runtime process exited (-9)", "The bench program stopped unexpectedly"),
+    ("SerialException: could not open port /dev/ttyUSB0: [Errno 2] No such file or directory: "
+     "'/dev/ttyUSB0'", "serial port cannot be opened"),
+    ("interlock: commanded current 2.100 A outside 0 … 2.0 A", "Stopped by the current limit"),
+    ("load must be in (0, 10] kg, got -5 kg (load_kg)", "Load must be in (0, 10] kg, got -5 kg."),
+    ('start: JSONDecodeError: Expecting value {"a": 1}', "Expecting value."),
+])  # fmt: skip
+def test_messages_are_plain_words(raw, want):
+    from smabench.gui.words import plain
+
+    text = plain(raw)
+    assert want in text, text
+    for bad in ("{", "--", "Error:", "Exception", "Errno", "(load_kg)"):
+        assert bad not in text, text

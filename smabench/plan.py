@@ -68,6 +68,8 @@ PLAN_SCHEMA: dict[str, Key] = {
     "allow_high_stress": Key(bool, "loads above the wire's long-life stress", default=False),
     "out": Key(str, "parent folder of the plan's folder", default="sessions"),
     "mock_speed": Key(float, "mock bench speed with --mock", "×", 0.1, 100.0, default=1.0),
+    "retries": Key(int, "times a step aborted by a device (not an interlock) is run again "
+                   "unattended, as a new session", "", 0, 10, default=1),
 }
 STEP_SCHEMA: dict[str, Key] = {
     "name": Key(str, "step name (unique in the plan)", required=True),
@@ -379,12 +381,28 @@ def execute(
         save_state(folder, state)
         print(f"step {i}/{len(plan.steps)} {st['name']}: {st['protocol']}, {st['cycles']} "
               f"cycle(s) at {st['current_a']:g} A under {st['load_kg']:g} kg", flush=True)
-        try:
-            session, result = _run_step_session(plan, st, sid, dev)
-        except KeyboardInterrupt:
-            entry["status"] = "running"  # resumable: run again as a new session
+        while True:
+            try:
+                session, result = _run_step_session(plan, st, sid, dev)
+            except KeyboardInterrupt:
+                entry["status"] = "running"  # resumable: run again as a new session
+                save_state(folder, state)
+                raise
+            retried = entry.setdefault("retried", 0)
+            if (result.status != "aborted" or result.reason.startswith("interlock")
+                    or retried >= plan.settings["retries"]):  # fmt: skip
+                break
+            # a device problem (link lost, sensor lost, driver fault): run the step again
+            print(f"  {result.status}: {result.reason}; running the step again "
+                  f"({retried + 1} of {plan.settings['retries']})", flush=True)  # fmt: skip
+            _link_session(session, {"name": plan.settings["name"], "step": st["name"],
+                                    "index": i, "state_file": str(folder / STATE_FILE),
+                                    "superseded": True})  # fmt: skip
+            entry["retried"] = retried + 1
+            entry["interrupted"].append(str(session))
+            sid = f"{i:02d}-{st['name']}-r{len(entry['interrupted'])}"
+            entry["session"] = str(folder / sid)
             save_state(folder, state)
-            raise
         _link_session(session, {"name": plan.settings["name"], "step": st["name"], "index": i,
                                 "state_file": str(folder / STATE_FILE),
                                 "previous_session": prev_session,

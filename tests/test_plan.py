@@ -114,8 +114,9 @@ def test_plan_validation_names_the_problem(tmp_path, capsys, edit, match):
 class FakeBench:
     """Steps recorded as small real sessions; can 'crash' (the process dies) inside a step."""
 
-    def __init__(self, crash_in: str | None = None) -> None:
+    def __init__(self, crash_in: str | None = None, abort: dict | None = None) -> None:
         self.crash_in = crash_in
+        self.abort = dict(abort or {})  # step name -> reasons of its next runs' aborts
         self.ran: list[str] = []
 
     def __call__(self, plan, step, sid, dev):
@@ -128,6 +129,11 @@ class FakeBench:
         if step["name"] == self.crash_in:
             self.crash_in = None
             raise SystemExit("power lost")  # the session stays 'running', as after a crash
+        reasons = self.abort.get(step["name"])
+        if reasons:
+            reason = reasons.pop(0)
+            w.close("aborted", reason)
+            return folder, RunResult("aborted", reason, 1)
         w.close()
         return folder, RunResult("completed", "protocol completed", 1)
 
@@ -233,5 +239,20 @@ def test_example_plan_on_the_mock_killed_and_resumed(tmp_path):
     for s in state["steps"]:
         sess = load_session(s["session"])
         assert sess.meta["status"] == "completed" and sess.meta["plan"]["step"] == s["name"]
-    assert state["steps"][1]["interrupted"] == [str(tmp_path / "example" / "02-cycles-2kg")]
+    assert state["steps"][1]["interrupted"][0] == str(tmp_path / "example" / "02-cycles-2kg")
     shutil.rmtree(tmp_path / "example", ignore_errors=True)
+
+
+def test_device_aborts_are_retried_unattended_interlocks_are_not(tmp_path, monkeypatch):
+    fake = FakeBench(abort={"a": ["current driver telemetry lost for 0.25 s"],
+                            "b": ["interlock: estimated temperature 170 °C above 160 °C"]})
+    monkeypatch.setattr(planmod, "_run_step_session", fake)
+    plan = load_plan(_plan(tmp_path))
+    code = execute(plan, new_state(plan), planmod.Devices(mock=True), ask=lambda *a: True,
+                   sleep=lambda s: None)  # fmt: skip
+    assert code == 1 and fake.ran == ["01-a", "01-a-r1", "02-b"]
+    state, _ = load_state(plan.folder)
+    a, b = state["steps"][:2]
+    assert a["status"] == "done" and a["session"].endswith("01-a-r1") and a["retried"] == 1
+    assert json.loads((plan.folder / "01-a" / "session.json").read_text())["plan"]["superseded"]
+    assert b["status"] == "pending" and "interlock" in b["result"]

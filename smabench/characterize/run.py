@@ -1,7 +1,7 @@
 """Characterize sessions: read each (streamed chunk by chunk), run E3097, fit the phase diagram.
 
 One session is one task (:func:`characterize_session`, a plain function of picklable
-arguments): :func:`run_tasks` runs the tasks on local worker processes by default or on a Dask
+arguments): :func:`smabench.tasks.run_tasks` runs them on local worker processes or on a Dask
 cluster when given a scheduler address; the results are the same either way (each task is
 deterministic and the results are put back in the order of the sessions).
 """
@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +31,7 @@ from smabench.sessions import (
     read_header,
     sample_files,
 )
+from smabench.tasks import run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -192,44 +191,6 @@ def phase_diagram(sessions: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
             "n_points": n,
         }
     return out
-
-
-# --------------------------------------------------------------------------- running tasks
-def _local_workers(n_tasks: int, workers: int | None) -> int:
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return max(1, min(n_tasks, workers or cpus or 1))
-
-
-def run_tasks(
-    func: Callable[..., Any],
-    args: Sequence[tuple],
-    scheduler: str | None = None,
-    workers: int | None = None,
-) -> list[Any]:
-    """``[func(*a) for a in args]``, one task per item: on a Dask cluster when ``scheduler``
-    (``tcp://host:port``) is given, else on local worker processes (in this process when there
-    is one task or ``workers == 1``). Results come back in the order of ``args``; a task's
-    exception is raised here (the first in order)."""
-    if scheduler:
-        try:
-            from distributed import Client
-        except ImportError as exc:  # pragma: no cover - a declared dependency
-            raise CharacterizeError(
-                f"--scheduler needs dask[distributed] ({exc}); pip install 'dask[distributed]'"
-            ) from None
-        try:
-            client = Client(scheduler, timeout="10s", set_as_default=False)
-        except OSError as exc:
-            raise CharacterizeError(f"cannot reach the Dask scheduler {scheduler}: {exc}") from None
-        with client:
-            futures = [client.submit(func, *a, pure=False) for a in args]
-            return client.gather(futures)
-    n = _local_workers(len(args), workers)
-    if n == 1:
-        return [func(*a) for a in args]
-    with ProcessPoolExecutor(max_workers=n) as pool:
-        futures = [pool.submit(func, *a) for a in args]
-        return [f.result() for f in futures]
 
 
 def characterize_many(

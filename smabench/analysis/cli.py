@@ -38,6 +38,13 @@ def add_arguments(s: argparse.ArgumentParser) -> None:
         "stress_shift with one load is an error",
     )
     s.add_argument("--workers", type=int, help="processes for the candidate fits (default: CPUs)")
+    s.add_argument(
+        "--each",
+        action="store_true",
+        help="analyse every session on its own, one task per session (an archive), on local "
+        "processes or on the Dask cluster of --scheduler; --json gets {'sessions': [...]}",
+    )
+    s.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (with --each)")
     s.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
 
 
@@ -52,7 +59,46 @@ def add_commands(sub) -> None:
     s.set_defaults(func=cmd_analyze)
 
 
+def analyse_one(path: str, wire_length_mm: float | None, wire_diameter_mm: float | None,
+                candidates: list[str] | None) -> dict:  # fmt: skip
+    """One session's analysis document (a task of ``--each``: module level, picklable)."""
+    from smabench.analysis.core import analyse
+    from smabench.analysis.data import prepare_session
+    from smabench.analysis.report import summary
+    from smabench.sessions import load_session
+
+    session = prepare_session(load_session(path), None, wire_length_mm, wire_diameter_mm)
+    doc = summary(analyse([session], candidates, progress=lambda m: None, workers=1))
+    doc.pop("timing_s", None)  # the same document wherever it ran
+    return {"session": path, "assumed": sorted(session.notes), **doc}
+
+
+def cmd_analyze_each(args: argparse.Namespace) -> int:
+    from smabench.analysis.report import write_json
+    from smabench.sessions import load_session_meta_check
+    from smabench.tasks import run_tasks
+
+    if args.load_kg is not None:
+        raise AnalysisError("--load-kg applies to one session only; give each its session.json")
+    for p in args.sessions:
+        load_session_meta_check(p)
+    cands = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates \
+        else None  # fmt: skip
+    tasks = [(str(p), args.wire_length_mm, args.wire_diameter_mm, cands) for p in args.sessions]
+    docs = run_tasks(analyse_one, tasks, args.scheduler, args.workers)
+    for d in docs:
+        print(f"{d['session']}: cause {d['cause']} (gain {d['gain']:.1%})")
+    if args.json:
+        write_json(args.json, {"sessions": docs})
+        print(f"json written: {args.json}")
+    return 0
+
+
 def cmd_analyze(args: argparse.Namespace) -> int:
+    if getattr(args, "each", False):
+        return cmd_analyze_each(args)
+    if getattr(args, "scheduler", None):
+        raise AnalysisError("--scheduler needs --each (one task per session)")
     from smabench.analysis.core import analyse
     from smabench.analysis.data import prepare_session
     from smabench.analysis.report import (

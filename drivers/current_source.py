@@ -175,6 +175,7 @@ class CurrentSource:
             p.set_lease(lease_s)  # ValueError now, not at connect
         self._cfg_lease_s = lease_s
         self.info: p.DeviceInfo | None = None
+        self.calibration: p.Calibration | None = None  # as last read back (get_calibration)
 
         self._lock = threading.RLock()
         self._tel_cond = threading.Condition(self._lock)
@@ -308,6 +309,29 @@ class CurrentSource:
     def lease_s(self) -> float:
         """The setpoint lease in force, s (the device default until :meth:`set_lease`)."""
         return p.LEASE_DEFAULT_S if self._cfg_lease_s is None else self._cfg_lease_s
+
+    def get_calibration(self) -> p.Calibration:
+        """The calibration the device uses (GET_CALIBRATION), also kept in :attr:`calibration`.
+        Telemetry flag ``CAL_DEFAULT`` says when the EEPROM held none (defaults in use)."""
+        cal = p.Calibration.from_data(self._command(*p.get_calibration()).data)
+        self.calibration = cal
+        return cal
+
+    def set_calibration(self, cal: p.Calibration) -> None:
+        """Write ``cal`` into the device's EEPROM (SET_CALIBRATION). The device refuses it while
+        the output is on (:class:`CommandRejected`, status ``OUTPUT_ON``); read it back with
+        :meth:`get_calibration` to check it stuck."""
+        self.calibration = None  # unknown until read back
+        self._command(*p.set_calibration(cal))
+
+    def get_heat_model(self) -> p.HeatModel:
+        """The wire heat model of the device's energy budget (GET_HEAT_MODEL)."""
+        return p.HeatModel.from_data(self._command(*p.get_heat_model()).data)
+
+    def set_heat_model(self, model: p.HeatModel) -> None:
+        """Write the energy budget's heat model into EEPROM (SET_HEAT_MODEL); refused while the
+        output is on (``OUTPUT_ON``), like :meth:`set_calibration`."""
+        self._command(*p.set_heat_model(model))
 
     def set_telemetry(self, period_s: float) -> None:
         """Telemetry period, s (0 = off, else 0.005 … 1)."""

@@ -126,6 +126,17 @@ class SensorServer:
             else:
                 self._sources[name] = source
 
+    def _set_from_source(self, name: str, value: float) -> None:
+        """A value the registers cannot hold (a position outside a sensor's range) is served as
+        the map's "no measurement" code, as the real sensor would report it."""
+        try:
+            self.set_value(name, value)
+        except ValueError:
+            q = self.sensor_map.quantities[name]
+            regs = self.sensor_map.encode_raw(name, q.invalid_raw)  # ValueError: no such code
+            with self._lock:
+                self._regs.update(regs)
+
     def set_registers(self, address: int, values: list[int]) -> None:
         """Overwrite raw registers (must be inside the map)."""
         with self._lock:
@@ -300,7 +311,7 @@ class SensorServer:
             sources = list(self._sources.items())
         try:
             for name, source in sources:
-                self.set_value(name, source())
+                self._set_from_source(name, source())
         except Exception:  # a broken source looks like a failing device
             return ExcCodes.DEVICE_FAILURE
         with self._lock:

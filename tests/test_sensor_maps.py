@@ -209,3 +209,30 @@ def test_latency_timer_of_the_adapter_is_read_and_warned_about(tmp_path, monkeyp
     ):
         s.connect()  # not a serial port: the connect fails, after the check
     assert any("latency timer is 16 ms" in r.getMessage() for r in caplog.records)
+
+
+def test_a_position_outside_the_sensor_range_is_served_as_out_of_range():
+    """The plant can move the slider where a real sensor cannot measure (below 0 on the RF602):
+    the simulator then serves the map's out-of-range code, not a failing device."""
+    with SensorServer(RIFTEK, tcp_port=0) as srv:
+        srv.set_source("position", lambda: -1.0)
+        with DisplacementSensor(RIFTEK, srv.tcp_spec, timeout_s=T) as s:
+            sample = s.read()
+        assert sample.flags == FLAG_OUT_OF_RANGE and math.isnan(sample.position_mm)
+
+
+def test_mock_bench_serves_the_chosen_map_behind_an_adapter_latency():
+    """`smabench mock --sensor-map … --adapter-latency-ms …` end to end (its own process), with
+    the fault injection of its control input."""
+    from smabench.bench.headless import MockProcess
+
+    with (
+        MockProcess(["--sensor-map", BAUMER, "--adapter-latency-ms", "30"]) as mock,
+        DisplacementSensor(BAUMER, mock.ports.sensor_tcp, timeout_s=T) as s,
+    ):
+        sample = s.read()
+        assert sample.ok and sample.latency_s >= 0.03
+        mock.send("sensor-status-error 1000")
+        deadline = time.monotonic() + 10
+        while not s.read().flags & FLAG_SENSOR_STATUS:
+            assert time.monotonic() < deadline, "status error never served"

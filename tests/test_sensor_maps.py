@@ -221,6 +221,7 @@ def test_a_position_outside_the_sensor_range_is_served_as_out_of_range():
         assert sample.flags == FLAG_OUT_OF_RANGE and math.isnan(sample.position_mm)
 
 
+@pytest.mark.slow  # a mock bench process: about 6 s on a loaded machine
 def test_mock_bench_serves_the_chosen_map_behind_an_adapter_latency():
     """`smabench mock --sensor-map … --adapter-latency-ms …` end to end (its own process), with
     the fault injection of its control input."""

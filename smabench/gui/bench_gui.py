@@ -123,8 +123,8 @@ def loop_with_gui(duration_s: float, out: Path) -> dict:
     win.connect_devices()
     if not win.wait_connected(30.0):
         raise RuntimeError(f"GUI could not connect to the mock bench: {win.last_error}")
-    win.buffer.clear()
-    win.link.start({"load_kg": 2.0, "out_dir": str(out), "session_id": "gui",
+    # through the window's own start path, so it draws the session as an operator sees it
+    win._send_start({"load_kg": 2.0, "out_dir": str(out), "session_id": "gui",
                     "protocol": _step_settings(duration_s)})  # fmt: skip
     # an ordinary event loop, as in `smabench gui`: idle between the 30 Hz frames
     loop = QtCore.QEventLoop()

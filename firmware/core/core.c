@@ -64,6 +64,9 @@ static uint16_t xadc_timer;
 static uint16_t slow_timer;
 /* heat model, precomputed from s.heat */
 static float heat_r_ohm, heat_g_w_k, heat_dt_over_c;
+static uint32_t heat_i2_sum; /* sum of I^2 over the current model step, mA^2 */
+static uint8_t heat_ticks;
+#define HEAT_STEP_MS 10u
 
 /* ------------------------------------------------------------------ helpers */
 static uint16_t get_u16(const uint8_t *p)
@@ -187,7 +190,7 @@ static void heat_apply(void)
 {
     heat_r_ohm = (float)s.heat.r_mohm * 1e-3f;
     heat_g_w_k = (float)s.heat.g * 1e-5f;
-    heat_dt_over_c = 1e-3f / ((float)s.heat.c * 1e-4f); /* 1 ms / (J/K) */
+    heat_dt_over_c = (float)HEAT_STEP_MS * 1e-3f / ((float)s.heat.c * 1e-4f); /* step / (J/K) */
 }
 
 static void load_eeprom(void)
@@ -569,19 +572,21 @@ static void check_faults(uint16_t sp_ma)
 
 /* Energy budget: C dT/dt = I^2 R - G (T - Ta), with the larger of the set and the measured
  * resistance and the larger of the measured and the commanded current. Runs always (the wire
- * cools while the output is off). */
+ * cools while the output is off). I^2 is summed every tick, the model steps every 10 ms. */
 static void heat_tick(void)
 {
-    float i_a = (float)s.current_ma * 1e-3f;
-    if (s.enabled) {
-        float sp_a = (float)s.setpoint_ma * 1e-3f;
-        if (sp_a > i_a) {
-            i_a = sp_a;
-        }
+    uint16_t i_ma = s.current_ma;
+    if (s.enabled && s.setpoint_ma > i_ma) {
+        i_ma = s.setpoint_ma;
     }
-    float r = measured_r_ohm > heat_r_ohm ? measured_r_ohm : heat_r_ohm;
-    float p_w = i_a * i_a * r;
-    s.model_c += (p_w - heat_g_w_k * (s.model_c - ambient_c)) * heat_dt_over_c;
+    heat_i2_sum += (uint32_t)i_ma * i_ma; /* 10 ticks of (2.8 A)^2 in mA^2: 7.8e7, fits */
+    if (++heat_ticks >= HEAT_STEP_MS) {
+        float r = measured_r_ohm > heat_r_ohm ? measured_r_ohm : heat_r_ohm;
+        float p_w = (float)heat_i2_sum * (1e-6f / (float)HEAT_STEP_MS) * r; /* mean I^2 R */
+        heat_i2_sum = 0;
+        heat_ticks = 0;
+        s.model_c += (p_w - heat_g_w_k * (s.model_c - ambient_c)) * heat_dt_over_c;
+    }
     float tmax = (float)s.heat.tmax_dc * 0.1f;
     uint8_t tc_hot = s.tc_cdeg != TEMP_NONE && s.tc_cdeg >= (int16_t)(s.heat.tmax_dc * 10u);
     if ((s.model_c >= tmax || tc_hot) && !(s.flags & FLAG_OVERTEMP)) {
@@ -627,7 +632,8 @@ static uint16_t control_step(uint16_t sp_ma)
     } else if (integ_q16 < -TRIM_MAX_Q16) {
         integ_q16 = -TRIM_MAX_Q16;
     }
-    int32_t out = ff + (int32_t)(((int64_t)ff * integ_q16 + (int64_t)PI_KP_Q16 * err + 32768) >> 16);
+    /* |ff * integ| <= 1023 * 8192, |Kp * err| <= 5041 * 333: int32 is enough */
+    int32_t out = ff + ((ff * integ_q16 + (int32_t)PI_KP_Q16 * err + 32768) >> 16);
     if (out < 0) {
         return 0;
     }
@@ -692,6 +698,8 @@ void core_init(uint8_t was_watchdog_reset)
     xadc_sum = 0;
     xadc_timer = 0;
     integ_q16 = 0;
+    heat_i2_sum = 0;
+    heat_ticks = 0;
     slow_timer = 0; /* NTC and thermocouple after 100 ms, when the ADC has conversions */
     measured_r_ohm = 0.0f;
     ref_alpha_q8 = (int32_t)(256.0f * (1.0f - expf(-1000.0f / (float)ELEC_SETPOINT_FILTER_TAU_US)) + 0.5f);

@@ -44,6 +44,8 @@ NTC_RANGE_C = (-40.0, 125.0)  # the NTC's rated range: outside it a reading is i
 SLOW_PERIOD_MS = 100.0  # NTC and thermocouple reads
 DISSIPATION_MAX_W = float(ELECTRICAL["sink"]["dissipation_max_w"])
 EE_CAL, EE_HEAT = 0, 16  # EEPROM block addresses, as firmware/core/core.h
+TRIM_MAX = 0.125  # the current trim's range, relative (firmware/core/core.c TRIM_MAX_Q16)
+NAN = float("nan")
 EXPECTED_LEN = {
     p.MsgType.IDENTIFY: 1,
     p.MsgType.ENABLE: 1,
@@ -335,7 +337,8 @@ class MockFirmware:
         dissipating = self.enabled and sp_ma > cap_ma
         if dissipating:
             sp_ma = cap_ma
-        counts = sp_ma / 1000.0 / ELECTRICAL.setpoint_a_per_count if self.enabled else 0.0
+        phys_ma = self._trimmed_ma(sp_ma)  # the trim regulates the calibrated measurement
+        counts = phys_ma / 1000.0 / ELECTRICAL.setpoint_a_per_count if self.enabled else 0.0
         if dt_ms > 0:
             r_wire = 1e9 if wire.open_wire else wire.resistance_ohm
             current_a = self.sink.step(counts, r_wire, dt_ms / 1000.0)
@@ -366,6 +369,18 @@ class MockFirmware:
                 self.next_telemetry_ms + self.telemetry_period_ms, now_ms - self.telemetry_period_ms
             )
         return bytes(out)
+
+    def _trimmed_ma(self, sp_ma: float) -> float:
+        """The wire current, mA, whose calibrated measurement is ``sp_ma``: the firmware's trim
+        (a settled one) regulates ``(I − offset)·gain`` to the setpoint, within ±12.5 %."""
+        cal = self.calibration
+        want = sp_ma / cal.current_gain + cal.current_offset_a * 1e3
+        return min(max(want, sp_ma * (1.0 - TRIM_MAX)), sp_ma * (1.0 + TRIM_MAX))
+
+    def _measured_ma(self) -> float:
+        """The fast-path current as the firmware reports it (calibrated), mA."""
+        cal = self.calibration
+        return max(0.0, self.current_ma - cal.current_offset_a * 1e3) * cal.current_gain
 
     def _heat(self, dt_ms: float) -> None:
         """The energy budget: the same heat model as the firmware, conservative by its
@@ -409,8 +424,8 @@ class MockFirmware:
         vsense = wire.vsense
         return p.Telemetry(
             t_ms=int(now_ms - self.start_ms) & 0xFFFFFFFF,
-            current_a=max(0.0, self.current_ma) / 1000.0,
-            voltage_v=self.voltage_mv / 1000.0 if vsense else float("nan"),
+            current_a=self._measured_ma() / 1000.0,
+            voltage_v=self.voltage_mv * self.calibration.voltage_gain / 1e3 if vsense else NAN,
             duty=self.duty,
             ambient_c=self.ambient_c,
             flags=F(int(self.flags) & 0xFFFF),
@@ -419,7 +434,9 @@ class MockFirmware:
             frame_errors=min(0xFFFF, self.receiver.frame_errors),
             wire_model_c=self.wire_model_c,
             thermocouple_c=self.thermocouple_c,
-            precise_current_a=max(0.0, self.current_ma) / 1000.0 if vsense else float("nan"),
+            precise_current_a=max(0.0, self.current_ma) * self.calibration.current_gain / 1e3
+            if vsense
+            else NAN,
             supply_v=self.supply_v,
             thermocouple_status=self.tc_status,
         )

@@ -282,6 +282,7 @@ def open_devices(
     The settings are checked again against the driver's hard limit before anything but the
     handshake is sent; latched faults from before the session are cleared.
     """
+    from smabench.drivers import protocol as p
     from smabench.drivers.current_source import CurrentSource
     from smabench.drivers.displacement import DisplacementSensor
 
@@ -290,6 +291,7 @@ def open_devices(
         port,
         current_limit_a=settings.current_limit_a,
         host_timeout_s=min(5.0, 0.25 * scale),
+        lease_s=min(5.0, p.LEASE_DEFAULT_S * scale),  # the setpoint lease, in device time
         telemetry_period_s=min(1.0, 0.01 * scale),
     )
     try:

@@ -184,18 +184,32 @@ def test_make_safe_turns_output_off(cs):
     assert not cs.wait_telemetry(timeout_s=0.2).enabled
 
 
-def test_host_timeout_turns_output_off(cs):
+def record_output_off(dev: SerialDevice) -> dict:
+    """Device side: the device time the output went off and the last valid frame before it."""
+    seen: dict = {}
+
+    def hook(t_ms, dt_s, fw):
+        if fw.enabled:
+            seen.clear()
+        elif "off_ms" not in seen:
+            seen.update(off_ms=t_ms, last_rx_ms=fw.last_rx_ms)
+
+    dev.on_step = hook
+    return seen
+
+
+def test_host_timeout_turns_output_off(cs, dev):
     cs.set_current(1.0)
     cs.enable(True)
     cs.wait_telemetry(lambda t: t.current_a > 0.9, 0.5)
+    seen = record_output_off(dev)
     cs.pause_keepalive()
-    t_pause = time.monotonic()
-    t = cs.wait_telemetry(lambda t: not t.enabled, 1.0)
-    elapsed = t.host_time - t_pause
+    t = cs.wait_telemetry(lambda t: not t.enabled, 2.0)
     assert t.flags & F.HOST_TIMEOUT
     assert "host timeout" in cs.fault_text()
-    # the last frame went out at most one keepalive interval before the pause
-    assert 0.25 - cs.keepalive_interval_s - 0.02 <= elapsed <= 0.25 + 0.1, elapsed
+    wait_until(lambda: "off_ms" in seen, 1.0, "the step after the output went off")
+    # device clock: off one host timeout after the last valid frame (1 ms steps)
+    assert seen["off_ms"] - seen["last_rx_ms"] == pytest.approx(1e3 * cs.host_timeout_s, abs=2)
     cs.pause_keepalive(False)
     cs.enable(True)  # ENABLE clears HOST_TIMEOUT
     t = cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 0.5)
@@ -244,11 +258,12 @@ def test_driver_gone_device_turns_off(dev):
     link._stop.set()  # kill the owner thread, no ENABLE 0
     link._wake_owner()
     link._thread.join(1.0)
+    seen = record_output_off(dev)
     link._close_port()
-    t_kill = time.monotonic()
-    wait_until(lambda: not dev.firmware.enabled, 0.5, "device output off")
-    assert time.monotonic() - t_kill < 0.25 + 0.1
+    wait_until(lambda: "off_ms" in seen, 2.0, "device output off")
     assert dev.firmware.flags & F.HOST_TIMEOUT
+    # device clock: off one host timeout after the last frame the dead host sent
+    assert seen["off_ms"] - seen["last_rx_ms"] == pytest.approx(250, abs=2)
     link._thread = None
 
 
@@ -276,15 +291,15 @@ def test_device_disappears(cs, dev):
     cs.enable(True)
     dev.stop()
     t0 = time.monotonic()
-    wait_until(lambda: not cs.link_ok, 0.5, "link_ok False")
+    wait_until(lambda: not cs.link_ok, 2.0, "link_ok False")
     with pytest.raises(LinkTimeout):
         cs.ping()
-    assert time.monotonic() - t0 < 0.5
+    assert time.monotonic() - t0 < 2.0  # bounded, never hangs
     assert "link lost" in cs.fault_text()
     t0 = time.monotonic()
     assert cs.make_safe() is False  # never raises, never hangs
     cs.close()
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 3.0
 
 
 def test_reopen_attempts_bounded(dev):
@@ -295,7 +310,7 @@ def test_reopen_attempts_bounded(dev):
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout, match="down"):
         src.ping()
-    assert time.monotonic() - t0 < 0.05
+    assert time.monotonic() - t0 < 0.5  # fails at once, no tries
     src.close()
 
 
@@ -304,8 +319,8 @@ def test_hung_device_times_out_and_recovers(cs, dev):
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.ping()
-    assert time.monotonic() - t0 < (cs.retries + 1) * cs.ack_timeout_s + 0.1
-    wait_until(lambda: not cs.link_ok, 0.5, "link_ok False")
+    assert time.monotonic() - t0 < (cs.retries + 1) * cs.ack_timeout_s + 1.0
+    wait_until(lambda: not cs.link_ok, 2.0, "link_ok False")
     assert cs.counters().retries >= cs.retries
     dev.resume()
     wait_until(lambda: cs.link_ok, 1.0, "link back")
@@ -465,7 +480,7 @@ def test_retry_then_timeout_bytes():
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.connect()
-    assert time.monotonic() - t0 < 3 * 0.05 + 0.1
+    assert time.monotonic() - t0 < 3 * 0.05 + 1.0
     # the same command three times, each with its own seq
     assert fake.frames == [b"\x00"] + [
         p.encode_frame(s, p.MsgType.IDENTIFY, bytes([p.PROTOCOL_VERSION])) for s in range(3)
@@ -497,7 +512,7 @@ def test_loop_url_no_ack_times_out():
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.connect()
-    assert time.monotonic() - t0 < 0.5
+    assert time.monotonic() - t0 < 2.0
     assert cs.counters().rx_packets == 2  # its own two IDENTIFY frames, ignored
     assert not cs.link_ok
     cs.close()

@@ -412,3 +412,163 @@ def test_ack_parse():
     assert (ack.seq, ack.type, ack.status, ack.status_name) == (5, 3, 6, "CLAMPED")
     with pytest.raises(p.ProtocolError):
         p.Ack.from_payload(b"\x05\x03")
+
+
+# ------------------------------------------------------------------ the Python firmware model
+class Model:
+    """The Python firmware model (drivers/mock/firmware.py) driven in simulated device time."""
+
+    def __init__(self, eeprom: bytearray | None = None, **wire) -> None:
+        from smabench.drivers.mock.firmware import Electrical, MockFirmware
+
+        self.fw = MockFirmware(0.0, eeprom=eeprom)
+        self.wire = Electrical(**wire)
+        self.now = 0.0
+        self.seq = 0
+        self.fw.tick(0.0, self.wire)
+
+    def cmd(self, type_: int, payload: bytes = b"") -> p.Ack:
+        out = self.fw.receive(p.encode_frame(self.seq, type_, payload), self.now)
+        self.seq = (self.seq + 1) & 0xFF
+        return p.Ack.from_payload(p.decode_frame(out).payload)
+
+    def status(self, *cmd) -> p.Status:
+        return p.Status(self.cmd(*cmd).status)
+
+    def run(self, ms: float, step_ms: float = 1.0, every=None) -> None:
+        end = self.now + ms
+        while self.now < end - 1e-9:
+            self.now += step_ms
+            if every is not None:
+                every(self)
+            self.fw.tick(self.now, self.wire)
+
+    @property
+    def t(self) -> p.Telemetry:
+        return self.fw.telemetry(self.now, self.wire)
+
+
+def test_model_lease_expires_while_pings_go_on():
+    m = Model()
+    m.status(*p.set_current(1.0))
+    assert m.status(*p.enable(True)) == p.Status.OK
+    t_off = None
+
+    def ping(mm: Model) -> None:
+        if round(mm.now) % 20 == 0:
+            mm.status(*p.ping())
+
+    for _ in range(600):
+        m.run(1.0, every=ping)
+        if t_off is None and not m.fw.enabled:
+            t_off = m.now
+    assert t_off == pytest.approx(250, abs=1)
+    t = m.t
+    assert t.flags & p.Flag.LEASE_EXPIRED and not t.flags & p.Flag.HOST_TIMEOUT
+    assert t.setpoint_a == 0.0 and t.current_a == 0.0
+    assert m.status(*p.enable(True)) == p.Status.OK and not m.t.flags & p.Flag.LEASE_EXPIRED
+    assert m.status(p.MsgType.SET_LEASE, b"\x13\x00") == p.Status.OUT_OF_RANGE  # 19 ms
+
+
+def test_model_energy_budget_under_2_5_a_for_60_s():
+    """The model trips as the C core does (host tests: first trip at 1.62 s), and a wire kinder
+    than the model (the bench plant's h = 120, R 0.485 Ω) stays below T_max for 60 s."""
+    m = Model(resistance_ohm=0.485)
+    m.status(*p.set_limits(2.5, 5.0))
+    m.status(*p.set_lease(5.0))
+    m.status(*p.set_current(2.5))
+    m.status(*p.enable(True))
+    c, g = 0.0336, 120 * 2 * math.pi * 0.19e-3 * 0.055
+    wire_c, peak, first = 22.0, 22.0, None
+
+    def insist(mm: Model) -> None:
+        if round(mm.now) % 100 == 0:
+            mm.cmd(*p.set_current(2.5))
+            if mm.fw.flags & p.Flag.OVERTEMP:
+                mm.cmd(*p.clear_faults())
+                mm.cmd(*p.enable(True))
+
+    for _ in range(60000 // 10):
+        m.run(10.0, step_ms=10.0, every=insist)
+        i = m.fw.current_ma / 1000.0
+        wire_c += (i * i * 0.485 - g * (wire_c - 22.0)) * 0.01 / c
+        peak = max(peak, wire_c)
+        if first is None and m.fw.flags & p.Flag.OVERTEMP:
+            first = m.now
+    assert first is not None and 1000 < first < 2500
+    assert 120.0 < peak < 180.0
+
+
+def test_model_estop_ntc_thermocouple():
+    m = Model()
+    m.status(*p.set_lease(5.0))
+    m.status(*p.set_current(1.0))
+    m.status(*p.enable(True))
+    m.run(20)
+    m.wire.estop = True
+    m.run(1)
+    assert not m.fw.enabled and m.t.flags & p.Flag.ESTOP
+    assert m.status(*p.clear_faults()) == p.Status.FAULT_ACTIVE
+    m.wire.estop = False
+    m.run(5)
+    assert m.t.flags & p.Flag.ESTOP
+    assert m.status(*p.clear_faults()) == p.Status.OK and m.status(*p.enable(True)) == p.Status.OK
+    for ntc in ("open", "short"):
+        m.wire.ntc = ntc
+        m.run(150)
+        assert math.isnan(m.t.ambient_c) and m.t.flags & p.Flag.NTC_FAULT
+    m.wire.ntc = "ok"
+    m.run(150)
+    assert m.t.ambient_c == pytest.approx(22.0)
+    # the thermocouple reports the wire temperature it is given (the plant's), in 0.25 °C
+    assert m.t.thermocouple_status == p.TcStatus.ABSENT and math.isnan(m.t.temperature_c)
+    m.wire.wire_temperature_c = 61.3
+    m.run(150)
+    assert m.t.temperature_c == 61.25 and m.t.thermocouple_status == 0
+    m.wire.thermocouple_fault = p.TcStatus.SCG
+    m.run(150)
+    assert math.isnan(m.t.temperature_c) and m.t.flags & p.Flag.TC_FAULT
+    m.wire.thermocouple_fault = 0
+    m.wire.wire_temperature_c = 181.0  # hotter than T_max: OVERTEMP even with a cool model
+    m.run(150)
+    assert m.t.flags & p.Flag.OVERTEMP and not m.fw.enabled
+
+
+def test_model_calibration_and_heat_model_in_eeprom():
+    m = Model()
+    assert m.t.flags & p.Flag.CAL_DEFAULT
+    cal = p.Calibration(current_offset_a=0.002, current_gain=1.02, voltage_gain=0.99)
+    assert m.status(*p.set_calibration(cal)) == p.Status.OK
+    heat = p.HeatModel(max_temperature_c=120.0)
+    assert m.status(*p.set_heat_model(heat)) == p.Status.OK
+    assert not m.t.flags & p.Flag.CAL_DEFAULT
+    m.status(*p.enable(True))
+    assert m.status(*p.set_heat_model(heat)) == p.Status.OUTPUT_ON
+    assert m.status(*p.set_calibration(cal)) == p.Status.OUTPUT_ON
+    bad = p.COMMANDS[p.MsgType.SET_HEAT_MODEL].pack(550, 336, 590, 299)
+    assert m.status(p.MsgType.SET_HEAT_MODEL, bad) == p.Status.OUT_OF_RANGE
+    # a reset keeps the EEPROM image
+    m2 = Model(eeprom=m.fw.eeprom)
+    back = p.Calibration.from_data(m2.cmd(*p.get_calibration()).data)
+    assert back.current_gain == pytest.approx(1.02, abs=1 / 32768)
+    assert p.HeatModel.from_data(m2.cmd(*p.get_heat_model()).data) == heat
+    # a corrupted block reads as defaults, flagged
+    m.fw.eeprom[3] ^= 0x10
+    m3 = Model(eeprom=m.fw.eeprom)
+    assert m3.t.flags & p.Flag.CAL_DEFAULT
+    assert p.Calibration.from_data(m3.cmd(*p.get_calibration()).data) == p.Calibration()
+
+
+def test_model_open_wire_rule():
+    m = Model(open_wire=True)
+    m.status(*p.set_lease(5.0))
+    m.status(*p.set_current(1.0))
+    m.status(*p.enable(True))
+    m.run(60)
+    assert m.t.flags & p.Flag.OPEN_WIRE and not m.fw.enabled
+    m2 = Model()
+    m2.status(*p.set_lease(5.0))
+    m2.status(*p.set_current(0.05))  # below 100 mA: never an open wire
+    m2.status(*p.enable(True))
+    m2.run(200)
+    assert m2.fw.enabled and not m2.t.flags & p.Flag.OPEN_WIRE

@@ -1,4 +1,5 @@
 /* Fake HAL (see hal_fake.h). */
+#define _DEFAULT_SOURCE /* M_PI */
 #include <math.h>
 #include <string.h>
 #include "electrical.h"
@@ -31,6 +32,9 @@ static int16_t xadc_code;
 static uint32_t tc_word;
 static uint8_t eeprom[1024];
 static uint32_t dither;
+static double t_us, next_sample_us; /* model time; when the next ADC conversion samples */
+#define PWM_PERIOD_US 64.0          /* 16 MHz / 1024 */
+#define ANTIALIAS_FC_HZ 1592.0      /* 1 kOhm, 100 nF */
 
 void fake_eeprom_erase(void) { memset(eeprom, 0xFF, sizeof eeprom); }
 uint8_t fake_eeprom_byte(uint16_t addr) { return eeprom[addr & 1023u]; }
@@ -55,7 +59,9 @@ void fake_reset(void)
     pwm_duty = 0;
     out_enabled = 0;
     pwm_sets = wdt_feeds = 0;
-    sink = (fake_sink_t){0.44, 5.0, 0.06, 0, 1.0, 1.0, 0.0};
+    sink = (fake_sink_t){0.44, 5.0, 0.06, 0, 1.0, 1.0, 0.0, 0.0, 0.0};
+    t_us = 0.0;
+    next_sample_us = 0.0;
     v1 = v2 = i_a = i_meas_a = 0.0;
     memset(adc_sum, 0, sizeof adc_sum);
     memset(adc_n, 0, sizeof adc_n);
@@ -89,7 +95,12 @@ static uint16_t adc_counts(double mv)
 static void sample_adcs(void)
 {
     double a_per_count = ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 / 256.0 * 1e-6;
-    double amp_a = i_meas_a * sink.adc_gain + sink.adc_offset_ma * 1e-3;
+    /* the PWM ripple at the sampling instant, after the anti-alias RC (gain and phase of one
+     * pole at 15.625 kHz); with synchronous sampling the instant is always the same phase */
+    double f_ratio = 1e6 / PWM_PERIOD_US / ANTIALIAS_FC_HZ;
+    double ripple = sink.ripple_a_pp / 2.0 / sqrt(1.0 + f_ratio * f_ratio) *
+                    sin(2.0 * M_PI * t_us / PWM_PERIOD_US - atan(f_ratio));
+    double amp_a = (i_meas_a + ripple) * sink.adc_gain + sink.adc_offset_ma * 1e-3;
     uint16_t c0 = adc_counts(amp_a / a_per_count / 1024.0 * ADC_REF_MV);
     double vs = sink.supply_v - i_a * sink.source_ohm;
     uint16_t c1 = adc_counts(vs * 1000.0 * ELEC_SUPPLY_MONITOR_DIV_Q16 / 65536.0);
@@ -129,8 +140,13 @@ void fake_advance_ms(uint32_t ms)
     for (uint32_t k = 0; k < ms; k++) {
         for (int j = 0; j < 20; j++) {
             model_step(SUB_US);
-            if (j % 5 == 4) {
-                sample_adcs(); /* 4 conversions per ms, at the same PWM phase */
+            t_us += SUB_US;
+            /* conversions as the AVR HAL starts them: at every second PWM BOTTOM (synchronous),
+             * or back to back in free-running mode */
+            while (next_sample_us <= t_us) {
+                sample_adcs();
+                next_sample_us += sink.async_period_us > 0.0 ? sink.async_period_us
+                                                             : 2.0 * PWM_PERIOD_US;
             }
         }
         now_ms++;

@@ -21,6 +21,8 @@ typedef struct {
     double setpoint_gain; /* real / nominal setpoint path (divider, PWM level tolerance) */
     double adc_gain;      /* real / nominal fast-path gain */
     double adc_offset_ma; /* fast-path offset, mA */
+    double ripple_a_pp;   /* PWM ripple on the wire current (15.625 kHz), peak to peak, A */
+    double async_period_us; /* 0: conversions at every 2nd PWM period (the HAL); else this period */
 } fake_sink_t;
 
 void fake_reset(void);                 /* everything but the EEPROM to defaults; sink on 0.44 Ohm */

@@ -384,6 +384,9 @@ def build_parser() -> argparse.ArgumentParser:
     from smabench.firmware_cli import add_commands as add_firmware_commands
 
     add_firmware_commands(sub)
+    from smabench.calibrate import add_commands as add_calibrate_commands
+
+    add_calibrate_commands(sub)
 
     s = sub.add_parser("bench", help="benchmarks that print figures")
     bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")

@@ -298,6 +298,7 @@ def open_devices(
         info = source.connect()
         settings.validate(device_limit_a=info.hard_limit_a)
         source.clear_faults()
+        source.get_calibration()  # as read back at connect: session.json's calibration block
         sensor = DisplacementSensor(
             sensor_map, spec, timeout_s=sensor_timeout_s, retries=0, unit_id=unit_id
         )

@@ -146,9 +146,13 @@ class RunSettings:
 
 
 def session_meta(
-    settings: RunSettings, devices: dict[str, Any], controller: dict | None = None
+    settings: RunSettings,
+    devices: dict[str, Any],
+    controller: dict | None = None,
+    calibration: dict | None = None,
 ) -> dict[str, Any]:
-    """``session.json`` content at the start of a run (session contract, DESIGN §3)."""
+    """``session.json`` content at the start of a run (session contract, DESIGN §3);
+    ``calibration``: :func:`smabench.calibrate.session_block`."""
     wire = PRESETS[settings.wire_preset]
     proto = asdict(settings.protocol)
     proto["levels_a"] = list(proto["levels_a"])
@@ -181,6 +185,7 @@ def session_meta(
             "allow_high_stress": settings.allow_high_stress,
         },
         "settings": to_mapping(values),  # every setting as the runtime's JSON takes it
+        "calibration": calibration,  # current driver (read at connect), wire, sensor tare
     }
 
 
@@ -209,8 +214,13 @@ def run_session(
             else Protocol(settings.protocol)
         )
     describe = getattr(command, "describe", None)
+    from smabench.calibrate import session_block
+
     writer = SessionWriter(
-        folder, session_meta(settings, devices or {}, describe() if describe else None)
+        folder,
+        session_meta(
+            settings, devices or {}, describe() if describe else None, session_block(source)
+        ),
     )
     runtime = BenchRuntime(
         source, sensor, command, writer.append, settings.runtime_config(), on_sample=on_sample

@@ -41,15 +41,14 @@ Online adaptation, as in the paper:
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from smabench.physics.identify import FitResult, fit_loop
-from smabench.physics.loop_models import SigmoidModel
+from smabench.physics.memory import ReversalMemory, TurnDetector
 from smabench.physics.plant import simulate_plant
 from smabench.physics.thermal import current_for_steady_temperature, simulate_temperature
 from smabench.physics.wire import PAPER_WIRE, Wire
@@ -163,7 +162,6 @@ class _Table:
     t: np.ndarray
 
 
-@dataclass
 class InverseLoop:
     """Online inverse of a loop model with reversal memory and adaptation (module docstring).
 
@@ -171,28 +169,39 @@ class InverseLoop:
     ``deadband_mm``: the setpoint must move back this far from its extreme to count as a
     reversal. ``adapt``: take reversal points from the wire and refit amplitudes; a refitted
     amplitude outside ``scale_range`` is not used (it comes from samples the kinetic lag
-    displaced, e.g. right after a step, not from the branch).
+    displaced, e.g. right after a step, not from the branch). ``memory``: reversal points kept
+    (1 = the paper's moved first common point only). The reversal points and the direction live
+    in a :class:`~smabench.physics.memory.ReversalMemory` driven by the setpoint.
     """
 
-    model: object
-    t_min_c: float
-    t_max_c: float
-    deadband_mm: float = 0.003
-    adapt: bool = True
-    refit_samples: int = 12
-    table_points: int = 97
-    scale_range: tuple[float, float] = (0.5, 2.0)  # plausible refitted amplitudes
-    memory: int = 1  # reversal points kept: 1 = the paper's moved first common point only
-    flat_fraction: float = 0.004  # "no motion" band at a branch start, fraction of the stroke
-    heating: bool = True
-    stack: list[Point] = field(default_factory=list)
-    scale: dict[bool, float] = field(default_factory=lambda: {True: 1.0, False: 1.0})
-
-    def __post_init__(self) -> None:
+    def __init__(
+        self,
+        model,
+        t_min_c: float,
+        t_max_c: float,
+        deadband_mm: float = 0.003,
+        adapt: bool = True,
+        refit_samples: int = 12,
+        table_points: int = 97,
+        scale_range: tuple[float, float] = (0.5, 2.0),
+        memory: int = 1,
+        flat_fraction: float = 0.004,
+        heating: bool = True,
+    ) -> None:
+        self.model = model
+        self.t_min_c, self.t_max_c = float(t_min_c), float(t_max_c)
+        self.deadband_mm = deadband_mm
+        self.adapt = adapt
+        self.refit_samples = refit_samples
+        self.table_points = table_points
+        self.scale_range = scale_range  # plausible refitted amplitudes
+        self.memory = memory
+        self.flat_fraction = flat_fraction  # "no motion" band at a branch start, of the stroke
+        self.scale: dict[bool, float] = {True: 1.0, False: 1.0}
         self.low, self.high = common_points(self.model)
+        self.reversal_memory = ReversalMemory(self.low, self.high, heating, key=1, depth=memory)
+        self.turns = TurnDetector(deadband_mm, self._setpoint_rising(heating))
         self._tables: dict[tuple, _Table] = {}  # branch tables by key (shared with previews)
-        self._ext_y: float | None = None
-        self._ext_t = self.t_min_c
         self._branch_scale = 1.0
         self._table: _Table | None = None
         self._obs: list[Point] = []
@@ -201,6 +210,18 @@ class InverseLoop:
         self._wire_ext: Point | None = None  # the wire's extreme on the current branch
         self.reversals = 0
         self.refits: list[float] = []
+
+    def _setpoint_rising(self, heating: bool) -> bool:
+        """Whether the position setpoint rises on a branch of this direction."""
+        return heating == (self.high[1] > self.low[1])
+
+    @property
+    def heating(self) -> bool:
+        return self.reversal_memory.heating
+
+    @property
+    def stack(self) -> list[Point]:
+        return self.reversal_memory.stack
 
     # ----------------------------------------------------------------- geometry
     def forward(self, t_c: float, heating: bool) -> float:
@@ -219,29 +240,15 @@ class InverseLoop:
         return lo + m, hi - m
 
     def _start_target(self) -> tuple[Point, Point]:
-        if self.heating:
-            start = self.stack[-1] if self.stack else self.low
-            target = self.stack[-2] if len(self.stack) >= 2 else self.high
-        else:
-            start = self.stack[-1] if self.stack else self.high
-            target = self.stack[-2] if len(self.stack) >= 2 else self.low
-        return start, target
+        return self.reversal_memory.start_target()
 
     def _branch_array(self, ts: np.ndarray, start: Point, target: Point, s: float) -> np.ndarray:
-        """:meth:`_branch_y` over an array of temperatures (vectorised for our sigmoid model,
-        whose branch rule it repeats; point by point for the paper's models)."""
+        """:meth:`_branch_y` over an array of temperatures (vectorised where the model has a
+        ``branch_array``, point by point otherwise)."""
         m = self.model
-        if not isinstance(m, SigmoidModel):
+        if not hasattr(m, "branch_array"):
             return np.array([self._branch_y(float(t), start, target, s) for t in ts])
-        br = m.heating_branch if self.heating else m.cooling_branch
-        xs, xe = m.fraction_at(*start), m.fraction_at(*target)
-        gs, ge = br.xi_scalar(start[0]), br.xi_scalar(target[0])
-        g = br.xi(ts)
-        xi = np.full_like(ts, xs) if abs(ge - gs) < 1e-12 else xs + (xe - xs) * (g - gs) / (ge - gs)
-        xi = np.clip(xi, min(xs, xe), max(xs, xe))
-        d = ts - m.t_ref_c
-        ym = m.ym_mm + m.km_mm_per_k * d
-        y = ym + xi * (m.ya_mm + m.ka_mm_per_k * d - ym)
+        y = m.branch_array(ts, self.heating, start, target)
         if s != 1.0 and target[0] != start[0]:
             u = (ts - start[0]) / (target[0] - start[0])
             chord = start[1] + u * (target[1] - start[1])
@@ -260,7 +267,7 @@ class InverseLoop:
 
     def _get_table(self) -> _Table:
         start, target = self._start_target()
-        inner = len(self.stack) >= 2
+        inner = self.reversal_memory.inner()
         if self.heating:
             t_end = target[0] if inner else self.t_max_c
         else:
@@ -367,23 +374,12 @@ class InverseLoop:
             point = self._wire_ext
         else:
             point = (self._invert(y_ext), y_ext)
-        self.heating = not self.heating
+        self.reversal_memory.reverse(point)
         self.reversals += 1
-        if point[0] >= self.high[0] or point[0] <= self.low[0]:
-            self.stack.clear()
-        else:
-            self.stack.append(point)
-            del self.stack[: max(0, len(self.stack) - self.memory)]
         self._branch_scale = self.scale[self.heating]
         self._obs = []
         self._refit_done = False
         self._wire_ext = self._wire_point
-
-    def _wipe(self, y: float) -> None:
-        while len(self.stack) >= 2 and (
-            (self.heating and y < self.stack[-2][1]) or (not self.heating and y > self.stack[-2][1])
-        ):
-            del self.stack[-2:]
 
     def temperature(
         self, y_sp: float, commit: bool = True, deadband_mm: float | None = None
@@ -395,30 +391,22 @@ class InverseLoop:
         y = float(y_sp)
         if not commit:
             return self._invert(y)
-        db = self.deadband_mm if deadband_mm is None else deadband_mm
-        if self._ext_y is None:
-            self._ext_y = y
-        elif self.heating:
-            if y <= self._ext_y:
-                self._ext_y = y
-            elif y - self._ext_y > db:
-                self._reverse(self._ext_y)
-                self._ext_y = y
-        else:
-            if y >= self._ext_y:
-                self._ext_y = y
-            elif self._ext_y - y > db:
-                self._reverse(self._ext_y)
-                self._ext_y = y
-        self._wipe(y)
+        self.turns.deadband = self.deadband_mm if deadband_mm is None else deadband_mm
+        if self.turns.update(y):
+            self._reverse(self.turns.turn_at)
+        self.reversal_memory.wipe(y)
         return self._invert(y)
 
     def preview(self, ys) -> list[float]:
         """Temperatures for a future setpoint sequence, reversals included, without touching
         this inverse's state (reversal points from the model, no refit)."""
-        p = copy.copy(self)
-        p.stack = list(self.stack)
+        p = object.__new__(InverseLoop)
+        p.__dict__.update(self.__dict__)
+        m = self.reversal_memory
+        p.reversal_memory = ReversalMemory(m.low, m.high, m.heating, m.key, m.depth, list(m.stack))
+        p.turns = TurnDetector(self.turns.deadband, self.turns.rising, self.turns.extreme)
         p.scale = dict(self.scale)
+        p.refits = []
         p.adapt = False
         p._wire_point = p._wire_ext = None
         p._refit_done = True

@@ -55,7 +55,8 @@ import logging
 import math
 from dataclasses import asdict, dataclass
 
-from smabench.control.model import Point, common_points
+from smabench.control.model import common_points
+from smabench.physics.memory import ReversalMemory, TurnDetector
 from smabench.physics.thermal import thermal_constants
 from smabench.physics.wire import Wire
 
@@ -104,10 +105,11 @@ class TemperatureObserver:
         self.low, self.high = common_points(model)
         self.temperature_c = ambient_c
         self.disturbance_w = 0.0
-        self.heating = True
-        self.start: Point | None = None  # reversal point the branch leaves (None: major)
-        self.start_open: Point | None = None  # the same, at the measured position (gate)
-        self._ext_c = ambient_c
+        # the reversal point the branch leaves, from the model and (gate) at the measured
+        # position; one point each (the paper's moved first common point)
+        self.memory = ReversalMemory(self.low, self.high, True, depth=1)
+        self.memory_open = ReversalMemory(self.low, self.high, True, depth=1)
+        self.turns = TurnDetector(self.s.deadband_k, True, ambient_c)
         self._ext_y: float | None = None  # measured position at the temperature extreme
         self._y_meas: float | None = None
         self.predicted_mm = math.nan
@@ -120,41 +122,40 @@ class TemperatureObserver:
 
     def reset(self, temperature_c: float, heating: bool = True) -> None:
         """Start from ``temperature_c`` (the runtime's estimate) with no heat input."""
-        self.temperature_c = self._ext_c = float(temperature_c)
+        self.temperature_c = float(temperature_c)
         self._ext_y = self._y_meas = None
         self.disturbance_w = 0.0
-        self.heating = heating
-        self.start = self.start_open = None
+        self.memory.reset(heating)
+        self.memory_open.reset(heating)
+        self.turns.reset(heating)
+        self.turns.extreme = self.temperature_c
         self._y_lag = self._y_f = self._y_open = None
         self.velocity_mm_s = 0.0
         self.error_ms_mm2 = 0.0
         self.gate = 0.0 if self.s.gate_mm > 0 else 1.0
 
     # ------------------------------------------------------------------ model
+    @property
+    def heating(self) -> bool:
+        return self.memory.heating
+
     def _branch(self, t_c: float, open_loop: bool = False) -> float:
         """Model position (mm) at ``t_c`` on the current branch: from the observer's start
         point, or (``open_loop``) from the one at the measured position."""
-        start = self.start_open if open_loop else self.start
-        if self.heating:
-            start, target = (start or self.low), self.high
-        else:
-            start, target = (start or self.high), self.low
-        return float(self.model.branch(t_c, self.heating, start, target))
+        mem = self.memory_open if open_loop else self.memory
+        return float(self.model.branch(t_c, mem.heating, *mem.start_target()))
 
     def _track_direction(self) -> None:
         t = self.temperature_c
-        if (t >= self._ext_c) if self.heating else (t <= self._ext_c):
-            self._ext_c = t
-            self._ext_y = self._y_meas
-        elif abs(t - self._ext_c) > self.s.deadband_k:
-            t_rev = self._ext_c
+        turns = self.turns
+        if turns.update(t):
+            t_rev = turns.turn_at
             y_model = self._branch(t_rev)
             y_meas = y_model if self._ext_y is None else self._ext_y
-            self.heating = not self.heating
-            inside = self.low[0] < t_rev < self.high[0]
-            self.start = (t_rev, y_model) if inside else None
-            self.start_open = (t_rev, y_meas) if inside else None
-            self._ext_c = t
+            self.memory.reverse((t_rev, y_model))
+            self.memory_open.reverse((t_rev, y_meas))
+        elif turns.extreme == t:
+            self._ext_y = self._y_meas
 
     # ------------------------------------------------------------------ per tick
     def predict(self, dt_s: float, power_w: float) -> None:

@@ -34,6 +34,7 @@ from smabench.physics.loop_models import (
     Model2,
     SigmoidModel,
     branch_directions,
+    run_history,
 )
 
 log = logging.getLogger(__name__)
@@ -81,8 +82,7 @@ class FitResult:
         if hasattr(self.loop_model, "predict"):
             return self.loop_model.predict(t)
         heating = branch_directions(t, self.deadband_k)
-        stepper = LoopStepper(self.loop_model, self.deadband_k, heating=bool(heating[0]))
-        return stepper.run(t)
+        return run_history(self.loop_model, t, self.deadband_k, bool(heating[0]))
 
     def stepper(self) -> LoopStepper:
         """An online stepper for this model (closed-form models only)."""
@@ -203,15 +203,24 @@ def _cp_bounds(loop: LoopData, cp: CommonPoints) -> tuple[list[float], list[floa
     return lo, hi
 
 
+def _orientation(loop: LoopData) -> float:
+    """+1 when the heating branch lies above the cooling branch (in the sign of the data's
+    position), −1 when below: the models' geometry follows the data, not a sign convention."""
+    gap = loop.heating_curve_mm - loop.cooling_curve_mm
+    return 1.0 if float(np.nansum(gap)) >= 0.0 else -1.0
+
+
 def _model1_start(loop: LoopData, cp: CommonPoints, aspect: float) -> list[float]:
-    """The paper's identification in the rotated frame: amplitudes and crossing point."""
+    """The paper's identification in the rotated frame: amplitudes and crossing point (in the
+    orientation ``o`` of the data: o·a1 < 0, o·a21 > 0, o·a22 < 0)."""
+    o = _orientation(loop)
     t, y, h = loop.temperature_c, loop.position_mm * aspect, loop.heating
     y1, y2 = cp.y1_mm * aspect, cp.y2_mm * aspect
     alpha = math.atan2(y2 - y1, cp.t2_c - cp.t1_c)
     ca, sa = math.cos(alpha), math.sin(alpha)
     length = math.hypot(cp.t2_c - cp.t1_c, y2 - y1)
     tr = cp.t2_c + (t - cp.t2_c) * ca + (y - y2) * sa
-    yr = (y2 - (t - cp.t2_c) * sa + (y - y2) * ca - y2) / aspect  # deviation, mm
+    yr = o * (y2 - (t - cp.t2_c) * sa + (y - y2) * ca - y2) / aspect  # deviation, mm, oriented
     t11 = cp.t2_c - length
     inside = (tr > t11) & (tr < cp.t2_c)
     cool, heat = inside & ~h, inside & h
@@ -227,7 +236,7 @@ def _model1_start(loop: LoopData, cp: CommonPoints, aspect: float) -> list[float
         after = np.nonzero(yrh[k:] <= 0.0)[0]
         if after.size:
             f12 = float((trh[k + after[0]] - t11) / length)
-    return [min(a1, -1e-6), max(a21, 1e-6), min(a22, -1e-6), min(max(f12, 0.1), 0.95)]
+    return [o * min(a1, -1e-6), o * max(a21, 1e-6), o * min(a22, -1e-6), min(max(f12, 0.1), 0.95)]
 
 
 def fit_model1(loop: LoopData) -> Model1:
@@ -242,6 +251,8 @@ def fit_model1(loop: LoopData) -> Model1:
     lo_cp, hi_cp = _cp_bounds(loop, cp)
     lo = [*lo_cp, -2 * s, 0.0, -2 * s, 0.05, math.log(1e-3)]
     hi = [*hi_cp, 0.0, 2 * s, 0.0, 0.97, math.log(1e4)]
+    if _orientation(loop) < 0:  # heating branch below: the amplitudes change sign
+        lo[7:10], hi[7:10] = [0.0, -2 * s, 0.0], [2 * s, 0.0, 2 * s]
 
     def build(x) -> Model1:
         return Model1(_cp_from(x, cp), *map(float, x[7:11]), math.exp(float(x[11])))
@@ -270,7 +281,8 @@ def fit_model2(loop: LoopData) -> Model2:
     diag = cp.y1_mm + slope * (grid - cp.t1_c)
     inside = (grid > cp.t1_c) & (grid < cp.t2_c) & np.isfinite(hc) & np.isfinite(cc)
     f = 0.6
-    dev_h = np.where(inside, hc - diag, np.nan)
+    o = _orientation(loop)
+    dev_h = np.where(inside, o * (hc - diag), np.nan)
     if np.any(dev_h > 0):
         k = int(np.nanargmax(dev_h))
         below = np.nonzero((dev_h[k:] <= 0) & inside[k:])[0]
@@ -279,10 +291,10 @@ def fit_model2(loop: LoopData) -> Model2:
     f = min(max(f, 0.1), 0.95)
     tcr = cp.t1_c + f * (cp.t2_c - cp.t1_c)
     gap = np.interp(tcr, grid[inside], (hc - cc)[inside]) if inside.any() else loop.stroke_mm / 2
-    amplitude = float(max(gap, 0.05 * loop.stroke_mm))
+    amplitude = o * float(max(o * gap, 0.05 * loop.stroke_mm))  # signed: o·A > 0
     s = loop.stroke_mm
     lo_cp, hi_cp = _cp_bounds(loop, cp)
-    cmax = 20.0 * s / amplitude
+    cmax = 20.0 * s / abs(amplitude)
     x0 = [*_cp_vector(cp), f, 1.0, 1.0, 1.0, 1.0]
     lo = [*lo_cp, 0.05, 0.0, 0.0, 0.0, 0.2]
     hi = [*hi_cp, 0.97, cmax, cmax, cmax, 1.0]

@@ -34,6 +34,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from smabench.physics.memory import HIGH, LOW, ReversalMemory, TurnDetector, branch_runs
+
 log = logging.getLogger(__name__)
 
 Point = tuple[float, float]  # (temperature °C, length mm)
@@ -287,7 +289,7 @@ class Model2:
         return y
 
     def branch(self, t: float, heating: bool, start: Point, target: Point) -> float:
-        """One sample on a (possibly minor) branch from ``start`` towards ``target``."""
+        """One sample of :meth:`branch_array` (scalar arithmetic: the online stepper's speed)."""
         cp = self.cp
         if t < cp.t1_c or t > cp.t2_c:
             return cp.outside_scalar(t)
@@ -295,7 +297,7 @@ class Model2:
         l1 = t2 - t1
         if l1 <= 1e-9:
             return start[1]
-        a = self.amplitude_mm * l1 / (cp.t2_c - cp.t1_c)
+        a = self.sub_amplitude(start, target)
         u = min(max((t - t1) / l1, 0.0), 1.0)
         y = y1 + (y2 - y1) * u
         if not heating:
@@ -303,6 +305,42 @@ class Model2:
         if u < self.f:
             return y + self.c21 * a * math.sin(math.pi * u / self.f)
         return y - self.c22 * a * math.sin(math.pi * (u - self.f) / (1.0 - self.f))
+
+    def branch_array(self, t: np.ndarray, heating: bool, start: Point, target: Point):
+        """A (possibly minor) branch from ``start`` towards ``target`` over temperatures ``t``:
+        the major branch's shape on the sub-loop's chord, its amplitude rescaled to the
+        sub-loop (:meth:`sub_amplitude`)."""
+        cp = self.cp
+        t = np.asarray(t, dtype=float)
+        (t1, y1), (t2, y2) = (start, target) if target[0] >= start[0] else (target, start)
+        l1 = t2 - t1
+        if l1 <= 1e-9:
+            y = np.full(t.shape, float(start[1]))
+        else:
+            a = self.sub_amplitude(start, target)
+            u = np.clip((t - t1) / l1, 0.0, 1.0)
+            y = y1 + (y2 - y1) * u
+            if not heating:
+                y = y - self.c11 * a * np.sin(np.pi * np.minimum(u / self.g, 1.0))
+            else:
+                y = y + np.where(
+                    u < self.f,
+                    self.c21 * a * np.sin(np.pi * u / self.f),
+                    -self.c22 * a * np.sin(np.pi * (u - self.f) / (1.0 - self.f)),
+                )
+        out = (t < cp.t1_c) | (t > cp.t2_c)
+        if np.any(out):
+            y = np.where(out, cp.outside(t), y)
+        return y
+
+    def sub_amplitude(self, start: Point, target: Point) -> float:
+        """Amplitude (mm) on the sub-loop between ``start`` and ``target``: the major one times
+        the share of the major stroke that the sub-loop spans (a reversal early in a
+        transformation opens a small loop however many kelvin it spans)."""
+        cp = self.cp
+        major = abs(cp.y2_mm - cp.y1_mm)
+        share = abs(target[1] - start[1]) / major if major > 1e-12 else 1.0
+        return self.amplitude_mm * min(share, 1.0)
 
     def parameters(self) -> dict[str, float]:
         d = asdict(self.cp)
@@ -350,14 +388,33 @@ class FractionBranch:
         )
 
 
+def frank_copula(u, v, theta: float):
+    """Frank's copula C(u, v) (u, v in [0, 1]): θ = 0 independence (u·v), θ → ∞ the upper
+    bound min(u, v), θ < 0 towards the lower bound; scalars or arrays."""
+    u = np.clip(u, 0.0, 1.0)
+    v = np.clip(v, 0.0, 1.0)
+    if abs(theta) < 1e-6:
+        return u * v
+    return -np.log1p(np.expm1(-theta * u) * np.expm1(-theta * v) / np.expm1(-theta)) / theta
+
+
 @dataclass
 class SigmoidModel:
     """Our model: phase-fraction mixing of a martensite and an austenite line.
 
     ``y = (1−ξ)·(ym + km·(T−t_ref)) + ξ·(ya + ka·(T−t_ref))`` with ξ the austenite fraction of
-    the branch (:class:`FractionBranch`). On a minor branch from a reversal point the fraction is
-    rescaled between the start and the target point (return-point memory), so the model stays
-    continuous at reversals and inner loops close.
+    the branch (:class:`FractionBranch`). A minor branch from a reversal point (start) runs to
+    its target (the previous reversal point or a common point, return-point memory) as
+    ``ξ = ξs + (ξt − ξs)·(K(g) − K(gs))/(K(gt) − K(gs))``, g the major branch of the new
+    direction at T, gs/gt at the start/target temperatures, so the model stays continuous at
+    reversals and inner loops close. ``K`` comes from reading the two major branches as the
+    distributions of the up- and down-switching temperatures of the wire's grains, coupled by
+    Frank's copula C with ``memory_theta`` θ (a Preisach view in closed form): on heating
+    ``K(u) = u − C(u, ξs)``, on cooling ``K(v) = C(ξs, v)``. θ = 0 (independent switching
+    temperatures) is the scaled law: the major branch scaled through the reversal point, as in
+    Liang–Rogers or Brinson; θ → ∞ (each grain's two temperatures locked together) holds ξ until
+    the major branch comes back to it, a Preisach wiping-out; in between the first-order
+    reversal curves of a Preisach density. θ is fitted on partial loops when the data have them.
     """
 
     ym_mm: float
@@ -367,6 +424,7 @@ class SigmoidModel:
     heating_branch: FractionBranch
     cooling_branch: FractionBranch
     t_ref_c: float = 30.0
+    memory_theta: float = 0.0
 
     name = "sigmoid"
 
@@ -388,17 +446,37 @@ class SigmoidModel:
             return 0.0
         return min(max((y - ym) / (ya - ym), 0.0), 1.0)
 
-    def branch(self, t: float, heating: bool, start: Point, target: Point) -> float:
-        """One sample on a (possibly minor) branch from ``start`` towards ``target``."""
+    def _minor_fraction(self, g, heating: bool, start: Point, target: Point):
+        """ξ on the branch from ``start`` to ``target`` where the major branch of this
+        direction is ``g`` (scalar or array)."""
         br = self.heating_branch if heating else self.cooling_branch
         xs = self.fraction_at(*start)
         xe = self.fraction_at(*target)
-        gs, ge, g = br.xi_scalar(start[0]), br.xi_scalar(target[0]), br.xi_scalar(t)
-        xi = xs if abs(ge - gs) < 1e-12 else xs + (xe - xs) * (g - gs) / (ge - gs)
-        xi = min(max(xi, min(xs, xe)), max(xs, xe))
+        gs, ge = br.xi_scalar(start[0]), br.xi_scalar(target[0])
+        th = self.memory_theta
+        if th != 0.0:
+            if heating:
+                g, gs, ge = (u - frank_copula(u, xs, th) for u in (g, gs, ge))
+            else:
+                g, gs, ge = (frank_copula(xs, v, th) for v in (g, gs, ge))
+        if abs(ge - gs) < 1e-12:
+            return xs + 0.0 * g
+        return np.clip(xs + (xe - xs) * (g - gs) / (ge - gs), min(xs, xe), max(xs, xe))
+
+    def branch(self, t: float, heating: bool, start: Point, target: Point) -> float:
+        """One sample on a (possibly minor) branch from ``start`` towards ``target``."""
+        br = self.heating_branch if heating else self.cooling_branch
+        xi = float(self._minor_fraction(br.xi_scalar(t), heating, start, target))
         d = t - self.t_ref_c
         ym = self.ym_mm + self.km_mm_per_k * d
         ya = self.ya_mm + self.ka_mm_per_k * d
+        return ym + xi * (ya - ym)
+
+    def branch_array(self, t: np.ndarray, heating: bool, start: Point, target: Point):
+        """:meth:`branch` over an array of temperatures (°C)."""
+        br = self.heating_branch if heating else self.cooling_branch
+        xi = self._minor_fraction(br.xi(t), heating, start, target)
+        ym, ya = self._lines(t)
         return ym + xi * (ya - ym)
 
     def transformation_range(self, tail: float = 0.005) -> tuple[float, float]:
@@ -435,11 +513,14 @@ class LoopStepper:
     """Online, one sample at a time: tracks branch direction and reversal points.
 
     ``step(T)`` returns the modelled length. A reversal is detected when the temperature moves
-    more than ``deadband_k`` back from its extreme; the extreme becomes a reversal point. The
-    branch then runs from that point towards the previous reversal point of the other kind
-    (inner loop: both common points moved) or, when there is none, towards the major common
-    point (incomplete cycle: one common point moved). Passing the target wipes the inner loop
-    out, as in the return-point memory of real SMA wires.
+    more than ``deadband_k`` back from its extreme; the extreme becomes a reversal point
+    (:class:`~smabench.physics.memory.ReversalMemory`: the branch runs from it towards the
+    previous reversal point of the other kind, an inner loop, or, when there is none, towards
+    the major common point, an incomplete cycle; passing the target wipes the inner loop out).
+    While the temperature is back from its extreme but still inside the deadband, the length
+    follows the branch that a reversal at the extreme would start: that branch passes through
+    the extreme point, so the path is continuous whether the reversal is then confirmed or the
+    temperature goes on past the extreme (the old branch passes through it as well).
     """
 
     def __init__(self, model, deadband_k: float = 0.5, heating: bool = True) -> None:
@@ -448,57 +529,37 @@ class LoopStepper:
         cp = model.common_points() if hasattr(model, "common_points") else model.cp
         self.low: Point = (cp.t1_c, cp.y1_mm)
         self.high: Point = (cp.t2_c, cp.y2_mm)
+        self.memory = ReversalMemory(self.low, self.high, heating)
+        self.turns = TurnDetector(self.deadband_k, heating)
         self.reset(heating)
+
+    @property
+    def heating(self) -> bool:
+        return self.memory.heating
+
+    @property
+    def stack(self) -> list[Point]:
+        return self.memory.stack
 
     def reset(self, heating: bool = True) -> None:
         """Forget the history: start on the major branch in the given direction."""
-        self.heating = heating
-        self.stack: list[Point] = []
-        self._ext_t: float | None = None
-        self._ext_y = 0.0
+        self.memory.reset(heating)
+        self.turns.reset(heating)
+        self._ext_y = math.nan
         self.last_y_mm = float("nan")
-
-    def _start_target(self) -> tuple[Point, Point]:
-        if self.heating:
-            start = self.stack[-1] if self.stack else self.low
-            target = self.stack[-2] if len(self.stack) >= 2 else self.high
-        else:
-            start = self.stack[-1] if self.stack else self.high
-            target = self.stack[-2] if len(self.stack) >= 2 else self.low
-        return start, target
-
-    def _reverse(self) -> None:
-        t_rev, y_rev = self._ext_t, self._ext_y
-        self.heating = not self.heating
-        if t_rev >= self.high[0] or t_rev <= self.low[0]:
-            self.stack.clear()  # complete half cycle: back on the major loop
-        else:
-            self.stack.append((t_rev, y_rev))
 
     def step(self, temperature_c: float) -> float:
         """Length (mm) at this temperature sample, given the history so far."""
         t = float(temperature_c)
-        if self._ext_t is None:
-            self._ext_t, self._ext_y = t, self.model.branch(t, self.heating, *self._start_target())
-        elif self.heating:
-            if t >= self._ext_t:
-                self._ext_t = t
-            elif self._ext_t - t > self.deadband_k:
-                self._reverse()
-                self._ext_t = t
+        mem, turns = self.memory, self.turns
+        if turns.update(t):
+            mem.reverse((turns.turn_at, self._ext_y))
+        mem.wipe(t)
+        if turns.backing(t):
+            pending = mem.reversed_at((turns.extreme, self._ext_y), t)
+            y = self.model.branch(t, pending.heating, *pending.start_target())
         else:
-            if t <= self._ext_t:
-                self._ext_t = t
-            elif t - self._ext_t > self.deadband_k:
-                self._reverse()
-                self._ext_t = t
-        # wipe out inner loops whose target point has been passed
-        while len(self.stack) >= 2 and (
-            (self.heating and t > self.stack[-2][0]) or (not self.heating and t < self.stack[-2][0])
-        ):
-            del self.stack[-2:]
-        y = self.model.branch(t, self.heating, *self._start_target())
-        if t == self._ext_t:
+            y = self.model.branch(t, mem.heating, *mem.start_target())
             self._ext_y = y
         self.last_y_mm = y
         return y
@@ -506,3 +567,28 @@ class LoopStepper:
     def run(self, temperature_c: np.ndarray) -> np.ndarray:
         """Step through a whole sequence (convenience for offline use)."""
         return np.array([self.step(t) for t in np.asarray(temperature_c, dtype=float)])
+
+
+def run_history(model, temperature_c, deadband_k: float, heating: bool = True,
+                runs=None) -> np.ndarray:  # fmt: skip
+    """Length (mm) along a whole temperature history, the same as stepping a
+    :class:`LoopStepper` through it, but run by run (:func:`~smabench.physics.memory.branch_runs`)
+    and vectorised where the model has a ``branch_array``. ``runs``: precomputed runs of this
+    history (they depend on the temperatures and the common points' temperatures only)."""
+    t = np.asarray(temperature_c, dtype=float)
+    cp = model.common_points() if hasattr(model, "common_points") else model.cp
+    low, high = (cp.t1_c, cp.y1_mm), (cp.t2_c, cp.y2_mm)
+    if runs is None:
+        runs = branch_runs(t, low[0], high[0], deadband_k, heating)
+    y = np.empty(t.size)
+    fixed = {LOW: low, HIGH: high}
+    vector = hasattr(model, "branch_array")
+    for r in runs:
+        start = fixed[r.start] if r.start < 0 else (float(t[r.start]), float(y[r.start]))
+        target = fixed[r.target] if r.target < 0 else (float(t[r.target]), float(y[r.target]))
+        seg = t[r.i0 : r.i1]
+        if vector:
+            y[r.i0 : r.i1] = model.branch_array(seg, r.heating, start, target)
+        else:
+            y[r.i0 : r.i1] = [model.branch(float(x), r.heating, start, target) for x in seg]
+    return y

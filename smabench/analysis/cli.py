@@ -69,7 +69,9 @@ def analyse_one(path: str, wire_length_mm: float | None, wire_diameter_mm: float
 
     session = prepare_session(load_session(path), None, wire_length_mm, wire_diameter_mm)
     doc = summary(analyse([session], candidates, progress=lambda m: None, workers=1))
-    doc.pop("timing_s", None)  # the same document wherever it ran
+    doc.pop("timing_s", None)  # the same document wherever it ran: no wall-clock times
+    for row in doc.get("candidates", {}).values():
+        row.pop("fit_seconds", None)
     return {"session": path, "assumed": sorted(session.notes), **doc}
 
 

@@ -10,6 +10,11 @@ is a lower turning point, the hottest of each hot phase an upper one. A cycle is
 in martensite; a record that does not reach both thresholds twice has no complete cycle.
 Noise smaller than half the trigger band cannot make a false cycle.
 
+**Noisy thermometers.** When the temperature's sample-to-sample noise (robust spread of its
+second differences) exceeds 0.3 K, it is smoothed by a centred moving average of up to 5 samples
+(no lag on a ramp; a fast transformation may take only ~10 samples, so no more); LCT and UCT are
+still the measured extremes at the turning points.
+
 **Tangent lines** (the E3097 construction; how the lines are chosen): each branch is first
 averaged over consecutive groups of samples (≈ 60 groups per branch: the branch runs forward in
 time, so this averages noise in temperature *and* strain, which binning by temperature does
@@ -21,7 +26,10 @@ not when the temperature is noisy). Then, in two passes:
 2. the **martensite line** is a least-squares line ε(T) through the groups with p ≤ 0.05 on the
    cold side of the transformation, the **austenite line** through p ≥ 0.95 on the hot side;
    the **transformation line** is a least-squares line T(ε) through the groups with
-   0.25 ≤ p ≤ 0.75 (T on ε because the transformation is steep in T).
+   0.25 ≤ p ≤ 0.75 (T on ε because the transformation is steep in T); finally it is refitted
+   through the raw samples in that band (at least 8, widening the band to 0.1–0.9 until there
+   are, and until its slope has the physical sign: temperature rising from the martensite to
+   the austenite strain), because a fast transformation holds only a few groups.
 3. As / Af (heating) and Ms / Mf (cooling) are the intersections of the transformation line with
    the martensite and austenite lines.
 
@@ -140,6 +148,27 @@ def group_means(t_c: np.ndarray, strain: np.ndarray, groups: int = GROUPS_PER_BR
     return np.add.reduceat(t_c, starts) / counts, np.add.reduceat(strain, starts) / counts
 
 
+MIN_RAW_TRANSFORMATION_POINTS = 8
+
+
+def _raw_transformation(
+    t_c: np.ndarray, strain: np.ndarray, cold: Line, hot: Line, change: float
+) -> Line | None:
+    """T(ε) through the raw samples whose progress is in the central band, widened until it
+    holds :data:`MIN_RAW_TRANSFORMATION_POINTS` and its slope has the physical sign (the
+    temperature rises from the martensite to the austenite strain); None when no band does."""
+    gap = cold(t_c) - hot(t_c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = (cold(t_c) - strain) / gap
+    for lo, hi in (TRANSFORMATION_P, (0.2, 0.8), (0.15, 0.85), TRANSFORMATION_P_WIDE):
+        idx = np.flatnonzero((p >= lo) & (p <= hi))
+        if len(idx) >= MIN_RAW_TRANSFORMATION_POINTS:
+            line = _fit(strain[idx], t_c[idx])
+            if line is not None and line.b * change < 0:
+                return line
+    return None
+
+
 def tangent_branch(t_c: np.ndarray, strain: np.ndarray, kind: str, min_change: float = 0.0):
     """The E3097 tangent construction on one branch in time order (see module docstring).
 
@@ -190,6 +219,12 @@ def tangent_branch(t_c: np.ndarray, strain: np.ndarray, kind: str, min_change: f
         if len(t_idx) < 2 and 0 < mid < n:  # one step across: the secant over it
             t_idx = np.array([mid - 1, mid])
         trans = _fit(ge[t_idx], gt[t_idx]) if len(t_idx) >= 2 else None
+    # final transformation line from the raw samples in the band (progress against the plateau
+    # lines): the groups average noise well on the plateaus, but a fast transformation holds
+    # only a few groups, and with a noisy temperature their line can tilt either way
+    raw = _raw_transformation(t_c, strain, cold_line, hot_line, change)
+    if raw is not None:
+        trans = raw
     if cold_line.n < 3:
         notes.append(f"{kind}: short martensite plateau ({cold_line.n} groups): flat line")
     if hot_line.n < 3:
@@ -285,8 +320,12 @@ def analyze_cycle(
     strain: np.ndarray,
     bounds: tuple[int, int, int],
     min_change: float = 0.0,
+    t_raw: np.ndarray | None = None,
+    half_window: int = 0,
 ) -> tuple[dict[str, Any], BranchResult, BranchResult]:
-    """One cycle's properties (keys as in the JSON; None where not determined)."""
+    """One cycle's properties (keys as in the JSON; None where not determined). ``t_c`` may be
+    smoothed (``half_window`` samples each side); LCT and UCT then come from ``t_raw``, the
+    measured extreme within that window of the turning point, as E3097 reports them."""
     i0, i1, i2 = bounds
     heat = tangent_branch(t_c[i0 : i1 + 1], strain[i0 : i1 + 1], "heating", min_change)
     cool = tangent_branch(t_c[i1 : i2 + 1], strain[i1 : i2 + 1], "cooling", min_change)
@@ -299,6 +338,11 @@ def analyze_cycle(
         return float(np.mean(x[max(0, i - w) : i + w + 1]))
 
     e_start, e_top, e_end = at(strain, i0), at(strain, i1), at(strain, i2)
+
+    def extreme(i: int, pick) -> float:
+        if t_raw is None or half_window < 1:
+            return at(t_c, i)
+        return float(pick(t_raw[max(0, i - half_window) : i + half_window + 1]))
     As = heat.start[0] if heat.start else math.nan
     Af = heat.finish[0] if heat.finish else math.nan
     Ms = cool.start[0] if cool.start else math.nan
@@ -314,9 +358,9 @@ def analyze_cycle(
         e_mid = 0.25 * (eAs + eAf + eMs + eMf)
         hyst = float(heat.transformation(e_mid) - cool.transformation(e_mid))
     props = {
-        "LCT_C": at(t_c, i0),
-        "UCT_C": at(t_c, i1),
-        "LCT_end_C": at(t_c, i2),
+        "LCT_C": extreme(i0, np.min),
+        "UCT_C": extreme(i1, np.max),
+        "LCT_end_C": extreme(i2, np.min),
         "As_C": As,
         "Af_C": Af,
         "Ms_C": Ms,
@@ -346,6 +390,39 @@ def analyze_cycle(
     return out, heat, cool
 
 
+NOISE_SMOOTH_K = 0.3
+MAX_SMOOTH_HALF = 2  # at most 5 samples: a fast transformation may take only ~10
+"""Temperature noise (K, from second differences) above which the temperature is smoothed."""
+
+
+def temperature_noise_k(t_c: np.ndarray) -> float:
+    """Sample-to-sample noise of a temperature record, K: the robust spread of its second
+    differences (1.4826 · MAD / √6), blind to smooth ramps."""
+    if len(t_c) < 5:
+        return 0.0
+    d2 = np.diff(t_c, 2)
+    return float(1.4826 * np.median(np.abs(d2 - np.median(d2))) / np.sqrt(6.0))
+
+
+def smooth_window(noise_k: float) -> int:
+    """Centred moving-average length (odd) that brings ``noise_k`` to about NOISE_SMOOTH_K."""
+    if noise_k <= NOISE_SMOOTH_K:
+        return 1
+    half = int(np.clip(round((noise_k / NOISE_SMOOTH_K) ** 2 / 2), 1, MAX_SMOOTH_HALF))
+    return 2 * half + 1
+
+
+def smooth(t_c: np.ndarray, window: int) -> np.ndarray:
+    """Centred moving average (edges: the window shrinks), no lag on a linear ramp."""
+    if window <= 1 or len(t_c) < window:
+        return t_c
+    c = np.concatenate([[0.0], np.cumsum(t_c)])
+    h = window // 2
+    i = np.arange(len(t_c))
+    lo, hi = np.maximum(0, i - h), np.minimum(len(t_c), i + h + 1)
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
 class CycleStream:
     """E3097 over a record fed in pieces (chunk files): memory is that of one piece plus the
     unfinished cycle carried to the next. The trigger levels and the 'no transformation' floor
@@ -366,6 +443,8 @@ class CycleStream:
         self._acc = 0.0
         self._prev_top: float | None = None
         self._carry: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self.window: int | None = None  # temperature smoothing, samples (1: none)
+        self.noise_k = 0.0
 
     def feed(self, t_c: np.ndarray, strain: np.ndarray, t_s: np.ndarray, final: bool) -> None:
         t_c, strain, t_s = (np.asarray(x, dtype=float) for x in (t_c, strain, t_s))
@@ -376,14 +455,18 @@ class CycleStream:
                                                                        (t_c, strain, t_s),
                                                                        strict=True))
             self._carry = None
+        if self.window is None:  # from the first piece: noisy thermocouples are smoothed
+            self.noise_k = temperature_noise_k(t_c)
+            self.window = smooth_window(self.noise_k)
+        t_raw, t_c = t_c, smooth(t_c, self.window)
         levels = self.levels or trigger_levels(t_c)
         bounds = split_cycles(t_c, levels)
         if not final:
             if len(bounds) <= 1:  # nothing closed yet: carry all
-                self._carry = (t_c, strain, t_s)
+                self._carry = (t_raw, strain, t_s)
                 return
             last = bounds.pop()
-            self._carry = (t_c[last[0]:], strain[last[0]:], t_s[last[0]:])
+            self._carry = (t_raw[last[0]:], strain[last[0]:], t_s[last[0]:])
         if not bounds:
             return
         if self.levels is None:
@@ -397,7 +480,8 @@ class CycleStream:
                 self.short += 1
                 log.info("cycle %d skipped: too few points per branch", k)
                 continue
-            props, heat, cool = analyze_cycle(t_c, strain, b, self.min_change or 0.0)
+            props, heat, cool = analyze_cycle(t_c, strain, b, self.min_change or 0.0,
+                                              t_raw, (self.window or 1) // 2)  # fmt: skip
             self._acc += props["residual_strain"] or 0.0
             row: dict[str, Any] = {"cycle": k, "t_start_s": float(t_s[b[0]]),
                                    "t_end_s": float(t_s[b[2]])}

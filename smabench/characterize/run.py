@@ -130,6 +130,8 @@ def characterize_session(
         "load_source": load_from if load_mpa is not None else None,
         "temperature_source": source,
         "wire_length_mm": float(length_mm),
+        "temperature_noise_K": stream.noise_k,
+        "temperature_smoothing_samples": stream.window,
         "n_cycles": len(cycles),
         "warnings": warnings,
         "cycles": cycles,

@@ -97,9 +97,12 @@ static void sample_adcs(void)
     double a_per_count = ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 / 256.0 * 1e-6;
     /* the PWM ripple at the sampling instant, after the anti-alias RC (gain and phase of one
      * pole at 15.625 kHz); with synchronous sampling the instant is always the same phase */
-    double f_ratio = 1e6 / PWM_PERIOD_US / ANTIALIAS_FC_HZ;
-    double ripple = sink.ripple_a_pp / 2.0 / sqrt(1.0 + f_ratio * f_ratio) *
-                    sin(2.0 * M_PI * t_us / PWM_PERIOD_US - atan(f_ratio));
+    double ripple = 0.0;
+    if (sink.ripple_a_pp != 0.0) {
+        double f_ratio = 1e6 / PWM_PERIOD_US / ANTIALIAS_FC_HZ;
+        ripple = sink.ripple_a_pp / 2.0 / sqrt(1.0 + f_ratio * f_ratio) *
+                 sin(2.0 * M_PI * t_us / PWM_PERIOD_US - atan(f_ratio));
+    }
     double amp_a = (i_meas_a + ripple) * sink.adc_gain + sink.adc_offset_ma * 1e-3;
     uint16_t c0 = adc_counts(amp_a / a_per_count / 1024.0 * ADC_REF_MV);
     double vs = sink.supply_v - i_a * sink.source_ohm;

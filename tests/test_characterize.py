@@ -299,3 +299,28 @@ def test_against_asmada_on_its_own_example():
         assert act == pytest.approx(ref[k, 7], rel=0.05)
         assert cycles[k + 1]["heating_transformation_strain"] == pytest.approx(ref[k, 8], rel=0.08)
         assert cycles[k]["LCT_end_C"] == pytest.approx(ref[k, 5], abs=4.0)
+
+
+def test_measured_temperature_preferred_and_source_in_every_output(tmp_path):
+    """A bench session with a thermocouple: temperature_C (measured) is used, not the estimate
+    (here 15 K off); the source is in the session entry, every cycle and the CSV."""
+    from smabench.characterize.cli import write_csv
+
+    br = Branches(round_k=2.0)
+    t1, e1 = cycle_record(br, 600, heat_fraction=0.25)
+    n = 5 * len(t1)
+    folder = tmp_path / "tc"
+    with SessionWriter(folder, {"load_kg": 1.0, "wire": {"length_mm": 55.0,
+                                                         "diameter_mm": 0.38}}) as w:  # fmt: skip
+        w.append_arrays({"t_s": np.arange(n) * 0.01, "current_A": np.ones(n),
+                         "position_mm": np.tile(e1, 5) * 55.0,
+                         "temperature_est_C": np.tile(t1, 5) + 15.0,
+                         "temperature_C": np.tile(t1, 5), "cycle": np.arange(n) // 600})
+    doc = characterize_many([str(folder)], workers=1)
+    s = doc["sessions"][0]
+    assert s["temperature_source"] == "measured"
+    assert all(c["temperature_source"] == "measured" for c in s["cycles"])
+    np.testing.assert_allclose([s["cycles"][1][k] for k in KEYS], _known(br), atol=0.5)
+    write_csv(doc, tmp_path / "c.csv")
+    rows = (tmp_path / "c.csv").read_text().splitlines()
+    assert all(",measured," in r for r in rows[1:])

@@ -26,9 +26,11 @@
  * PWM level). Plant seen by the trim (linear region): K = 2.60 mA per count, two RC poles of
  * 1 ms, anti-alias 0.1 ms, 1 ms averaging + 1 tick delay; independent of the wire resistance and
  * the supply until the sink runs out of headroom (compliance), where the trim is frozen.
- * Ki*K = 0.05 per ms: integral crossover 50 rad/s, phase margin ~80 deg; Kp*K = 0.2: the
- * proportional loop alone cannot oscillate (gain margin 5 with the lags). host tests: steps
- * across 0.3 ... 1 Ohm and 4.75 ... 5.5 V settle within 10 ms, no overshoot above 5 %. */
+ * Ki*K = 0.05 per ms, Kp*K = 0.2: the loop's frequency response (poles, zero-order hold, the
+ * mean over a tick, anti-alias RC, one tick of computation) crosses over at 51 rad/s (8 Hz) with
+ * 92 deg of phase margin and 7.9x (18 dB) of gain margin. Setpoint steps do not go through it:
+ * the trim compares with a reference model of the poles. Host tests: steps across 0.3 ... 1 Ohm
+ * and 4.75 ... 5.5 V settle within 7 ms. */
 #define PI_KP_Q16 5041 /* 0.077 counts/mA */
 #define PI_KI_Q16 1260 /* 0.0192 counts/mA per ms */
 #define TRIM_LEARN_MIN_MA 200 /* below, offsets dominate the path error: the trim holds */

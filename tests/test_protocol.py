@@ -572,3 +572,21 @@ def test_model_open_wire_rule():
     m2.status(*p.enable(True))
     m2.run(200)
     assert m2.fw.enabled and not m2.t.flags & p.Flag.OPEN_WIRE
+
+
+def test_model_dissipation_limit_as_the_c_core():
+    """2.5 A asked into 0.1 Ω at 5.5 V would put 12 W into the sink's MOSFET: capped at 10 W and
+    flagged, as the C core does (host tests: 2.011 A, 10.01 W)."""
+    m = Model(resistance_ohm=0.1, supply_v=5.5)
+    m.status(*p.set_limits(2.5, 5.0))
+    m.status(*p.set_lease(5.0))
+    m.status(*p.set_heat_model(p.HeatModel(heat_capacity_j_per_k=6.0)))  # no energy trip here
+    m.status(*p.set_current(2.5))
+    m.status(*p.enable(True))
+    m.run(300)
+    i = m.fw.current_ma / 1000.0
+    assert m.t.flags & p.Flag.DISSIPATION and m.t.flags & p.Flag.LIMIT_ACTIVE
+    assert (5.5 - i * (0.06 + 0.1 + 0.1)) * i == pytest.approx(10.0, abs=0.3)
+    m.wire.resistance_ohm = 0.44
+    m.run(300)
+    assert not m.t.flags & p.Flag.DISSIPATION and m.fw.current_ma == pytest.approx(2500, abs=10)

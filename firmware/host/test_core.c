@@ -864,6 +864,33 @@ static void test_vsense(void)
     CHECK(!(st()->flags & FLAG_VSENSE_FAULT) && st()->voltage_dmv != U16_NONE, "recovers");
 }
 
+/* The sink's MOSFET takes (V_supply - V_wire - I R_shunt) I: on a short wire at a high supply the
+ * firmware caps the current at the dissipation limit (10 W), flags it, and lets go when it can. */
+static void test_dissipation_limit(void)
+{
+    reset(0);
+    fake_sink()->wire_ohm = 0.1;
+    fake_sink()->supply_v = 5.5;
+    cmd_limits(2500, 5000);
+    cmd_u16(MSG_SET_LEASE, 5000);
+    const uint16_t roomy[] = {550, 60000, 590, 1800}; /* no energy trip in this test */
+    cmd_words(MSG_SET_HEAT_MODEL, roomy, 4);
+    cmd_u8(MSG_ENABLE, 1);
+    cmd_u16(MSG_SET_CURRENT, 2500);
+    ticks(300);
+    double i = fake_current_a();
+    double p_fet = (5.5 - i * 0.06 - i * 0.1 - i * 0.1) * i;
+    printf("dissipation limit: 2.5 A asked into 0.1 Ohm at 5.5 V: %.3f A, MOSFET %.2f W\n", i, p_fet);
+    CHECK((st()->flags & FLAG_DISSIPATION) && (st()->flags & FLAG_LIMIT_ACTIVE), "flagged");
+    CHECK(p_fet <= 10.2 && p_fet > 9.0, "MOSFET at the 10 W limit: %.2f W", p_fet);
+    fake_sink()->wire_ohm = 0.44; /* a longer wire: less voltage across the MOSFET */
+    ticks(300);
+    CHECK(!(st()->flags & FLAG_DISSIPATION) && fabs(fake_current_a() - 2.5) < 0.01,
+          "released: %.3f A", fake_current_a());
+    cmd_u8(MSG_ENABLE, 0);
+    fake_eeprom_erase();
+}
+
 /* ------------------------------------------------------------------ current loop */
 /* Step; returns ms until the last sample outside +-5 % of the target (n if never). */
 static int settle_ms(uint16_t target, int n, double *peak_ma, double *err_ma)
@@ -1155,6 +1182,7 @@ int main(int argc, char **argv)
     test_thermocouple();
     test_vsense();
     test_current_loop();
+    test_dissipation_limit();
     test_sampling_without_aliasing();
     test_telemetry();
     test_watchdog_flag();

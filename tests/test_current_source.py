@@ -14,6 +14,7 @@ import pytest
 import serial
 
 from smabench.drivers import protocol as p
+from smabench.drivers.base import CurrentSourceDevice
 from smabench.drivers.current_source import (
     CONNECT_WAIT_S,
     CommandRejected,
@@ -64,6 +65,7 @@ def test_handshake_and_version(cs, dev):
     assert (info.protocol_version, info.hard_limit_a, info.name) == (
         p.PROTOCOL_VERSION, 2.5, "SMA-CD328-MOCK")
     assert cs.link_ok and cs.lease_s == 5.0
+    assert isinstance(cs, CurrentSourceDevice)  # the runtime's seam (drivers/base.py)
     t = cs.wait_telemetry(timeout_s=0.5)
     assert not t.enabled and t.current_a == 0.0
     assert cs.identify() == cs.info

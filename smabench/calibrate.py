@@ -62,6 +62,7 @@ OFFSET_MAX_A = 0.032767
 TARE_DURATION_S = 1.0
 TARE_RATE_HZ = 100.0
 TARE_MIN_SAMPLES = 5
+TARE_MAX_STD_MM = 0.02  # a tare over a moving position is refused
 
 
 class CalibrationError(ValueError):
@@ -123,6 +124,7 @@ class Measurement:
     current_std_a: float
     frames: int
     span_s: float  # device time covered by the frames
+    on_s: float  # device time from the output on at this setpoint to the last frame
     ambient_c: float
     faults: str  # latched faults/events seen while on ('' when none)
     fault_flags: int  # the same as flags (protocol.Flag)
@@ -244,6 +246,7 @@ class HeldCurrent:
             current_std_a=float(np.std(currents)) if currents else nan,
             frames=len(frames),
             span_s=max(0.0, self._span_ms()) / 1e3 if frames else 0.0,
+            on_s=(frames[-1].t_ms - self._on_ms) / 1e3 if frames and self._on_ms else 0.0,
             ambient_c=mean([t.ambient_c for t in frames]),
             faults=p.fault_text(int(faults)) if faults else "",
             fault_flags=int(faults),
@@ -391,7 +394,7 @@ def calibrate_current(
     settle_s: float = 0.3,
     average_s: float = 0.5,
     max_hold_s: float = 20.0,
-    out: Any = sys.stdout,
+    out: Any = None,
 ) -> CurrentCalibration:
     """Step ``cs`` (a connected :class:`~smabench.drivers.current_source.CurrentSource`)
     through ``set_a``, read the meter at each, fit, write (output off) and read back.
@@ -399,6 +402,7 @@ def calibrate_current(
     Each reading is checked as it comes (:func:`check_readings`); a refusal turns the output
     off and writes nothing. Each hold lasts at most ``max_hold_s`` and at most 70 % of what the
     device's own energy budget allows at that current (the wire may be in series)."""
+    out = out or sys.stdout
     set_a = tuple(float(i) for i in set_a)
     before = cs.get_calibration()
     model = cs.get_heat_model()
@@ -516,7 +520,7 @@ def judge_wire(m: Measurement, wire: Any, tolerance: float = WIRE_TOLERANCE) -> 
             f"(R {r * 1e3:.1f} mΩ, {expected * 1e3:.0f} mΩ expected): shorted Kelvin sense "
             "leads, or both on the same clamp"
         )
-    hold_s = m.span_s + 0.3  # the settling before the frames heated the wire too
+    hold_s = m.on_s  # the settling before the frames heated the wire too
     ambient = m.ambient_c if math.isfinite(m.ambient_c) else 22.0
     t_end = step_exact(ambient, current, hold_s, wire, ambient, resistance_ohm=r)
     t_inf = step_exact(ambient, current, math.inf, wire, ambient, resistance_ohm=r)
@@ -632,7 +636,8 @@ def session_block(source: Any, path: str | Path | None = None) -> dict[str, Any]
             "current_offset_a": cal.current_offset_a,
             "current_gain": cal.current_gain,
             "voltage_gain": cal.voltage_gain,
-            "defaults": None if latest is None else bool(latest.flags & p.Flag.CAL_DEFAULT),
+            # CAL_DEFAULT: the calibration or the heat model in EEPROM invalid, defaults in use
+            "eeprom_defaults": None if latest is None else bool(latest.flags & p.Flag.CAL_DEFAULT),
             "written_at": written,  # null: not written by `smabench calibrate` with this store
         }
     return {
@@ -701,7 +706,8 @@ def _connect(port: str) -> Any:
     return cs
 
 
-def cmd_calibrate_current(args: argparse.Namespace, *, input_fn=input, out=sys.stdout) -> int:
+def cmd_calibrate_current(args: argparse.Namespace, *, input_fn=input, out: Any = None) -> int:
+    out = out or sys.stdout
     from smabench.drivers.current_source import CurrentSourceError
 
     currents = _float_list(args.currents, "--currents")
@@ -777,7 +783,8 @@ def cmd_calibrate_current(args: argparse.Namespace, *, input_fn=input, out=sys.s
     return 0
 
 
-def cmd_calibrate_wire(args: argparse.Namespace, *, out=sys.stdout) -> int:
+def cmd_calibrate_wire(args: argparse.Namespace, *, out: Any = None) -> int:
+    out = out or sys.stdout
     from smabench.drivers.current_source import CurrentSourceError
 
     wire = expected_wire(args.wire_length_mm, args.wire_diameter_mm, args.wire_preset)
@@ -802,7 +809,7 @@ def cmd_calibrate_wire(args: argparse.Namespace, *, out=sys.stdout) -> int:
           f"{check.expected_ohm:.4f} Ω; deviation {check.deviation:+.1%} (tolerance "
           f"±{tolerance:.0%})", file=out)  # fmt: skip
     print(f"heating by the heat balance: +{check.heating_k:.2f} K by the end of the "
-          f"{m.span_s + 0.3:.1f} s at {check.current_a:.2f} A (+{check.steady_heating_k:.1f} K "
+          f"{m.on_s:.1f} s at {check.current_a:.2f} A (+{check.steady_heating_k:.1f} K "
           f"if held for ever), far below As {check.as_c:g} °C: the wire stays martensite",
           file=out)  # fmt: skip
     record = {
@@ -823,7 +830,8 @@ def cmd_calibrate_wire(args: argparse.Namespace, *, out=sys.stdout) -> int:
     return 0
 
 
-def cmd_calibrate_show(args: argparse.Namespace, *, out=sys.stdout) -> int:
+def cmd_calibrate_show(args: argparse.Namespace, *, out: Any = None) -> int:
+    out = out or sys.stdout
     store = store_path(args.calibration)
     data = load_store(store)
     print(f"{store}{'' if data else ' (none yet)'}", file=out)
@@ -854,7 +862,8 @@ def _open_sensor(args: argparse.Namespace) -> Any:
     return sensor
 
 
-def cmd_sensor_tare(args: argparse.Namespace, *, out=sys.stdout) -> int:
+def cmd_sensor_tare(args: argparse.Namespace, *, out: Any = None) -> int:
+    out = out or sys.stdout
     store = store_path(args.calibration)
     load_store(store)
     sensor = _open_sensor(args)
@@ -862,6 +871,12 @@ def cmd_sensor_tare(args: argparse.Namespace, *, out=sys.stdout) -> int:
         stats = read_positions(sensor, args.duration_s)
     finally:
         sensor.close()
+    if stats.std_mm > args.max_std_mm:
+        raise CalibrationError(
+            f"the position moves (± {stats.std_mm:.4f} mm over {stats.duration_s:g} s, more "
+            f"than {args.max_std_mm:g} mm): wait until the wire is cold and the load still; "
+            "nothing stored"
+        )
     record = {
         "zero_mm": stats.mean_mm,
         "std_mm": stats.std_mm,
@@ -879,7 +894,8 @@ def cmd_sensor_tare(args: argparse.Namespace, *, out=sys.stdout) -> int:
     return 0
 
 
-def cmd_sensor_read(args: argparse.Namespace, *, out=sys.stdout) -> int:
+def cmd_sensor_read(args: argparse.Namespace, *, out: Any = None) -> int:
+    out = out or sys.stdout
     tare = None if args.absolute else load_store(args.calibration).get("sensor_tare")
     sensor = _open_sensor(args)
     try:
@@ -990,6 +1006,13 @@ def add_commands(sub: Any) -> None:
         )
         if name == "read":
             s.add_argument("--absolute", action="store_true", help="without the tare")
+        else:
+            s.add_argument(
+                "--max-std-mm",
+                type=_positive,
+                default=TARE_MAX_STD_MM,
+                help=f"refuse when the readings scatter more, mm ({TARE_MAX_STD_MM:g})",
+            )
         _store_option(s)
         s.set_defaults(func=lambda a, fn=fn: _run(fn, a))
 

@@ -418,6 +418,8 @@ def test_energy_budget_trips_under_endless_2_5_a(raw, sim):
             dt_s = (t.t_ms - last) / 1e3
             t_wire += (t.current_a**2 * 0.44 - g_wire * (t_wire - 22.0)) * dt_s / c_wire
             peak = max(peak, t_wire)
+        if start is None and not t.enabled:
+            continue  # frames from before the output came on
         start = t.t_ms if start is None else start
         last = t.t_ms
         if first_trip is None and t.flags & F.OVERTEMP:

@@ -333,6 +333,8 @@ def safety_paths(sim: Sim, link: Link) -> None:
             dt_s = (t["t_ms"] - last_t) / 1e3
             t_wire += (i * i * r_wire - g_wire * (t_wire - 22.0)) * dt_s / c_wire
             peak = max(peak, t_wire)
+        if start is None and not t["flags"] & FLAG_ENABLED:
+            continue  # frames from before the output came on
         start = t["t_ms"] if start is None else start
         last_t = t["t_ms"]
         if first_trip is None and t["flags"] & FLAG_OVERTEMP:

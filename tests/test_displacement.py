@@ -41,7 +41,8 @@ pytestmark = pytest.mark.timeout(60)
 
 RS485 = "generic-rs485-laser"
 FLOAT32 = "generic-float32-laser"
-T = 0.05  # request timeout used in the tests (s)
+T = 0.25  # request timeout used in the tests (s): a loaded machine must not make answers late
+SLACK_S = 1.5  # `bounded` proves a call does not hang, not how fast it is: room for a busy machine
 
 
 def poll(fn, deadline_s: float = 3.0):
@@ -64,7 +65,7 @@ def bounded(fn, limit_s: float):
     except Exception as e:  # noqa: BLE001 - returned to the caller to check
         result, exc = None, e
     elapsed = time.monotonic() - t0
-    assert elapsed < limit_s, f"call took {elapsed:.3f} s (limit {limit_s} s)"
+    assert elapsed < limit_s + SLACK_S, f"call took {elapsed:.3f} s (limit {limit_s} s + slack)"
     return result, exc
 
 

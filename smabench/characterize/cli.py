@@ -6,6 +6,7 @@ import argparse
 import csv
 import logging
 import math
+import os
 import sys
 import tempfile
 import time
@@ -181,15 +182,19 @@ def cmd_bench_characterize(args: argparse.Namespace) -> int:
     files = sorted(folder.glob("samples*.csv"))
     size_mb = sum(f.stat().st_size for f in files) / 1e6
     t0 = time.perf_counter()
+    c0 = time.process_time()
     doc = characterize_many([str(folder)], workers=1)
     dt = time.perf_counter() - t0
+    cpu = time.process_time() - c0
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     s = doc["sessions"][0]
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     ok = sum(1 for c in s["cycles"] if c["As_C"] is not None and c["Mf_C"] is not None)
     print(f"session: {args.cycles} cycles at {args.rate_hz:g} Hz, {len(files)} chunk file(s), "
           f"{size_mb:.0f} MB")  # fmt: skip
     print(f"characterize: {dt:.1f} s for {s['n_cycles']} cycles ({ok} with all four "
-          f"temperatures), {dt / max(1, s['n_cycles']) * 1e3:.2f} ms per cycle")
+          f"temperatures), {dt / max(1, s['n_cycles']) * 1e3:.2f} ms per cycle; "
+          f"CPU time {cpu:.1f} s (load average {load:.1f} on {os.cpu_count()} CPUs)")
     print(f"peak memory of this process: {peak_mb:.0f} MB")
     return 0
 

@@ -490,3 +490,57 @@ def test_calibration_in_eeprom(raw, sim):
     assert t.voltage_v == pytest.approx(0.99 * 0.44 * sim.state()["current_a"], rel=0.003)
     raw.status(*p.enable(False))
     assert raw.status(*p.set_calibration(p.Calibration())) == S.OK
+
+
+WDT_ELF = REPO / "firmware/build/sim/wdt-hang.elf"
+OPTIBOOT = REPO / "firmware/build/boot/optiboot_atmega328.hex"
+
+
+@pytest.mark.skipif(
+    not (WDT_ELF.is_file() and OPTIBOOT.is_file()),
+    reason="needs `make -C firmware sim-test` (wdt-hang.elf) and optiboot (make -C firmware sim)",
+)
+def test_watchdog_reset_reported_behind_optiboot():
+    """optiboot clears MCUSR before it starts the application, and leaves its own wait through a
+    watchdog reset. The application must report WATCHDOG_RESET after its own hang (the marker its
+    watchdog interrupt wrote) and not after optiboot's exit (no marker)."""
+    proc = subprocess.Popen(
+        [str(SIM), "--bootloader", str(OPTIBOOT), str(WDT_ELF)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        bufsize=1,
+    )  # fmt: skip
+    try:
+        port = proc.stdout.readline().split(None, 1)[1].strip()
+        dev = RawDevice(port)  # opening the port resets into optiboot (the auto-reset)
+        deadline = time.monotonic() + 20.0
+
+        def ask(cmd):
+            while time.monotonic() < deadline:
+                try:
+                    return dev.command(*cmd, timeout_s=0.3)
+                except AssertionError:
+                    continue
+            raise AssertionError(f"no answer to {cmd[0].name}")
+
+        ask(p.identify())
+        ask(p.set_telemetry(0.01))
+        first = dev.telemetry(timeout_s=2.0)
+        assert not first.flags & F.WATCHDOG_RESET  # optiboot's own watchdog exit is not ours
+        # the test build hangs 300 ms after it started: its watchdog interrupt, then the reset;
+        # the restarted application (telemetry off again) is asked until it streams
+        after = None
+        while time.monotonic() < deadline and after is None:
+            with contextlib.suppress(AssertionError):
+                ask(p.set_telemetry(0.01))
+                t = dev.telemetry(timeout_s=0.5)
+                if t.flags & F.WATCHDOG_RESET:
+                    after = t
+        assert after is not None, "no WATCHDOG_RESET after the hang"
+        assert after.t_ms < first.t_ms + 2000  # device time restarted with the reset
+        dev.close()
+    finally:
+        with contextlib.suppress(OSError):
+            proc.stdin.close()
+        proc.terminate()
+        proc.wait(5)
+    assert "watchdog" in proc.stderr.read()

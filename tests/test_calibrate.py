@@ -160,16 +160,17 @@ def _read_back(port: str) -> p.Calibration:
 
 
 def _held(port: str, currents, truth) -> list[tuple[float, float]]:
-    """(device reading, wire current) at each setpoint, settled (200 ms device time)."""
+    """(device reading, wire current) at each setpoint once settled (200 ms device time), the
+    setpoint renewed meanwhile (:class:`~smabench.calibrate.HeldCurrent`)."""
     out = []
-    with CurrentSource(port, lease_s=1.0) as cs:
+    with CurrentSource(port, lease_s=cal.LEASE_S) as cs:
         for i in currents:
-            cs.set_current(i, wait=True)
-            cs.enable(True)
-            t = cs.wait_telemetry(lambda t, i=i: t.enabled and abs(t.setpoint_a - i) < 1e-3, 2.0)
-            t = cs.wait_telemetry(lambda x, t0=t.t_ms: x.t_ms > t0 + 200, 2.0)
-            out.append((t.current_a, truth()))
-            cs.enable(False)
+            with cal.HeldCurrent(cs, i, settle_s=0.2) as held:
+                assert held.wait_span(0.1, timeout_s=10.0), held.measurement()
+                wire_a = truth()
+                m = held.measurement()
+            assert not m.faults and not m.timed_out, m
+            out.append((m.current_a, wire_a))
     return out
 
 

@@ -316,7 +316,7 @@ def test_calibrate_wire_on_the_mock(bench, store, capsys):
 def test_wire_problems_are_named_and_exit_2(store, capsys, electrical, match):
     with SerialDevice(electrical=electrical) as dev:
         rc = main(["calibrate", "wire", "--port", dev.port_name, "--wire-length-mm", "55",
-                   "--wire-diameter-mm", "0.38", "--average-s", "0.3"])  # fmt: skip
+                   "--wire-diameter-mm", "0.38", "--average-s", "0.1"])  # fmt: skip
         assert dev.call(lambda fw: fw.enabled) is False
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
@@ -328,12 +328,12 @@ def test_wire_problems_are_named_and_exit_2(store, capsys, electrical, match):
 def test_tare_then_read_gives_zero(bench, store, capsys):
     spec = bench.ports.sensor_tcp
     absolute = bench.link.position_mm()
-    assert main(["sensor", "tare", "--sensor", spec, "--duration-s", "0.5"]) == 0
+    assert main(["sensor", "tare", "--sensor", spec, "--duration-s", "0.3"]) == 0
     tare = json.loads(store.read_text())["sensor_tare"]
     assert tare["zero_mm"] == pytest.approx(absolute, abs=0.005)  # 2 µm noise, ≥ 5 readings
     assert tare["samples"] >= 5 and tare["invalid"] == 0
     capsys.readouterr()
-    assert main(["sensor", "read", "--sensor", spec, "--duration-s", "0.5"]) == 0
+    assert main(["sensor", "read", "--sensor", spec, "--duration-s", "0.3"]) == 0
     out = capsys.readouterr().out
     rel = float(out.split()[1])
     assert abs(rel) < 0.005, out

@@ -212,6 +212,10 @@ class HeldCurrent:
                 self._faults |= t.latched_faults | (t.flags & p.EVENTS)
             self._cond.notify_all()
 
+    def remaining_s(self) -> float:
+        """How long the current stays on at most from now, s (inf: until :meth:`stop`)."""
+        return max(0.0, self.max_hold_s - (time.monotonic() - self._t0))
+
     def _span_ms(self) -> float:
         return self._frames[-1].t_ms - self._frames[0].t_ms if self._frames else -1.0
 
@@ -281,9 +285,20 @@ def _hold_limit_s(cs: Any, model: p.HeatModel, current_a: float, cap_s: float) -
 def _wait_for_budget(
     cs: Any, model: p.HeatModel, current_a: float, need_s: float, out: Any
 ) -> None:
-    """Wait (device telemetry) until the energy budget allows ``need_s`` at ``current_a``."""
+    """Wait (device telemetry) until the energy budget allows ``need_s`` at ``current_a``;
+    CalibrationError when it never will (not even from a cold wire)."""
     if _hold_limit_s(cs, model, current_a, math.inf) >= need_s:
         return
+    t = cs.latest()
+    ambient = t.ambient_c if t is not None else float("nan")
+    ambient = ambient if math.isfinite(ambient) else AMBIENT_FALLBACK_C
+    cold = HEAT_BUDGET_MARGIN * time_to_trip_s(model, current_a, ambient, ambient)
+    if cold < need_s:
+        raise CalibrationError(
+            f"the device's heat model (T_max {model.max_temperature_c:g} °C) allows only "
+            f"{cold:.2f} s at {current_a:g} A, {need_s:.2f} s needed: lower --currents or "
+            "--settle-s/--average-s"
+        )
     print(f"  waiting for the wire to cool (the device's heat model allows less than "
           f"{need_s:.1f} s at {current_a:.3f} A now)", file=out, flush=True)  # fmt: skip
 
@@ -428,6 +443,9 @@ def calibrate_current(
             )
         if m.faults:
             raise CalibrationError(f"fault while {current:g} A was on: {m.faults}; nothing written")
+        if m.timed_out:
+            print(f"  (the output went off after {held.max_hold_s:.1f} s, the device's heat "
+                  "budget; the device readings are from before)", file=out)  # fmt: skip
         device_a.append(m.current_a)
         meter_a.append(reading)
         print(f"  device {m.current_a:.4f} A (± {m.current_std_a * 1e3:.1f} mA, "
@@ -675,7 +693,7 @@ def parse_reading(text: str) -> float:
 
 def _prompt_meter(input_fn: Callable[[str], str], out: Any) -> MeterFn:
     def meter(step: int, set_a: float, held: HeldCurrent) -> float:
-        left = held.max_hold_s - (time.monotonic() - held._t0)
+        left = held.remaining_s()
         limit = f" (on for {left:.0f} s more at most)" if math.isfinite(left) else ""
         for _ in range(3):
             try:

@@ -18,6 +18,7 @@ import queue
 import re
 import subprocess
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -279,6 +280,42 @@ def test_a_reading_off_by_more_than_20_percent_stops_the_steps(bench, store, cap
     assert bench.device.call(lambda fw: fw.enabled) is False
     assert _read_back(port) == p.Calibration()
     assert not store.exists()
+
+
+def test_a_current_the_heat_budget_cannot_hold_is_refused(bench, store, capsys):
+    """A heat model that trips 2 A within 0.5 s: refused before 2 A is switched on."""
+    port = bench.ports.driver
+    tight = p.HeatModel(0.55, 0.002, 0.0059, 300.0)
+    with CurrentSource(port) as cs:
+        cs.set_heat_model(tight)
+    rc = main(["calibrate", "current", "--port", port, "--readings", "0.2,1.0,2.0", *FAST])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1 and "heat model" in err[0], err
+    assert bench.device.call(lambda fw: fw.setpoint_ma) <= 1000  # 2 A was never set
+    assert _read_back(port) == p.Calibration()
+    assert not store.exists()
+
+
+@pytest.mark.slow
+def test_a_slow_operator_gets_the_output_turned_off(bench, store):
+    """The hold ends by itself at --max-hold-s while the operator still reads; the reading
+    typed afterwards (what the meter showed while on) still calibrates."""
+    port = bench.ports.driver
+    off_before_answer = []
+
+    def operator(prompt: str) -> str:
+        seen_a = _physical_a(bench)  # the meter while the current flows
+        deadline = time.monotonic() + 10.0
+        while bench.device.call(lambda fw: fw.enabled) and time.monotonic() < deadline:
+            time.sleep(0.01)  # the operator still reading: wait for the output to go off
+        off_before_answer.append(not bench.device.call(lambda fw: fw.enabled))
+        return f"{seen_a:.4f}"
+
+    args = _parse(["calibrate", "current", "--port", port, "--max-hold-s", "0.6", *FAST])
+    assert cal.cmd_calibrate_current(args, input_fn=operator) == 0
+    assert off_before_answer == [True, True, True]
+    back = _read_back(port)
+    assert back.current_gain == pytest.approx(1.0, abs=2e-3)
 
 
 # ----------------------------------------------------------------------------- mock: wire

@@ -52,3 +52,30 @@ def test_session_and_trace_agree_from_outside(tmp_path, run_cli):
     heated = tr["current_A"] > 0.6
     assert abs(np.median(tr["current_A"][heated]) - 1.2) < 0.02
     assert tr["t_s"][-1] > 2.0  # the heating and part of the cooling are in the trace
+
+
+@pytest.mark.slow
+def test_thermocouple_channel_reaches_the_session(tmp_path, run_cli):
+    """With a MAX31855 on the wire the session's temperature_C is the wire's measured
+    temperature (0.25 °C steps, as the chip reports); without one the column stays empty."""
+    from smabench.sessions import load_session
+
+    for tc in (True, False):
+        trace = tmp_path / f"trace-{tc}.csv"
+        args = ["run", "--mock", "--mock-speed", "5", "--mock-trace", str(trace), "--load-kg", "2",
+                "--protocol", "cycles", "--cycles", "1", "--current-a", "1.2", "--heat-s", "2",
+                "--cool-timeout-s", "3", "--out", str(tmp_path), "--session-id", f"s{tc}",
+                "--quiet"]  # fmt: skip
+        proc = run_cli(*args, *(["--mock-thermocouple"] if tc else []))
+        assert proc.returncode == 0, proc.stderr
+        s = load_session(tmp_path / f"s{tc}")
+        measured = s.data["temperature_C"] if s.has("temperature_C") else None
+        if not tc:
+            assert measured is None or not np.isfinite(measured).any()
+            continue
+        assert np.isfinite(measured).mean() > 0.9
+        chip = measured[np.isfinite(measured)]
+        assert np.allclose(chip * 4, np.round(chip * 4))  # the MAX31855's 0.25 °C steps
+        tr = read_trace(trace)
+        # the hottest the chip saw is the hottest the wire got (telemetry lags ≤ a few ms)
+        assert abs(np.nanmax(measured) - tr["temperature_C"].max()) < 2.0

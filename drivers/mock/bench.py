@@ -49,7 +49,6 @@ BOOTLOADER_HEX = Path(
     os.environ.get("SMABENCH_BOOTLOADER", REPO / "firmware/build/boot/optiboot_atmega328.hex")
 )
 SENSOR_MAP = "generic-rs485-laser"
-SUPPLY_V = 5.0  # the Python firmware model's supply (the simavr harness has its own 12 V)
 FIRMWARES = ("python", "emulated")
 PR_SET_PDEATHSIG = 1
 
@@ -89,9 +88,13 @@ class EmulatedDriver:
         couple_s: float = 0.002,
         bootloader: bool = False,
         blank: bool = False,
+        thermocouple: bool = False,
     ) -> None:
         """``bootloader``: boot the Arduino bootloader (:data:`BOOTLOADER_HEX`) with the auto-reset
-        of a Nano (every open of the port resets it); ``blank``: no application in the flash."""
+        of a Nano (every open of the port resets it); ``blank``: no application in the flash;
+        ``thermocouple``: the emulated MAX31855 reads the plant's wire temperature (else none
+        is fitted)."""
+        self.thermocouple = thermocouple
         needed = [SIM_BIN] + ([BOOTLOADER_HEX] if bootloader else []) + ([] if blank else [SIM_ELF])
         for path in needed:
             if not path.is_file():
@@ -150,6 +153,8 @@ class EmulatedDriver:
                 with contextlib.suppress(OSError, ValueError):
                     self._send(f"R {state.resistance_ohm:.5f}")
                     self._send(f"A {state.ambient_c:.2f}")
+                    if self.thermocouple:
+                        self._send(f"TC {state.temperature_c:.2f}")
             last_ms = t_ms
             time.sleep(self.couple_s)
 
@@ -185,12 +190,14 @@ class MockBench:
         blank: bool = False,
         sensor_map: str = SENSOR_MAP,
         adapter_latency_s: float = 0.0,
+        thermocouple: bool = False,
     ) -> None:
         """``trace``: a CSV path for what the plant really got (:class:`PlantTrace`);
         ``bootloader``, ``blank``: see :class:`EmulatedDriver` (emulated firmware only);
         ``sensor_map``: the register map the sensor serves (any shipped map or a path);
         ``adapter_latency_s``: every sensor answer held this long, as by an FTDI USB/RS-485
-        adapter's latency timer (16 ms by default on a real one)."""
+        adapter's latency timer (16 ms by default on a real one); ``thermocouple``: a MAX31855 on
+        the wire reports the plant's wire temperature (the session's ``temperature_C``)."""
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
@@ -203,6 +210,7 @@ class MockBench:
             raise ValueError("--blank needs --bootloader (a blank chip can only be flashed by one)")
         self.bootloader, self.blank = bootloader, blank
         self.sensor_map, self.adapter_latency_s = sensor_map, adapter_latency_s
+        self.thermocouple = thermocouple
         self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
         self.speed = speed
         self.firmware = firmware
@@ -218,7 +226,9 @@ class MockBench:
     def _couple(self, t_ms: float, dt_s: float, fw: MockFirmware) -> Electrical:
         state = self.link.step(dt_s, fw.current_ma / 1000.0)
         return Electrical(
-            resistance_ohm=state.resistance_ohm, supply_v=SUPPLY_V, ambient_c=state.ambient_c
+            resistance_ohm=state.resistance_ohm,
+            ambient_c=state.ambient_c,
+            wire_temperature_c=state.temperature_c if self.thermocouple else None,
         )
 
     def _start_socat(self) -> tuple[str, str] | None:
@@ -250,7 +260,10 @@ class MockBench:
                 driver_port = self.device.port_name
             else:
                 self.emulated = EmulatedDriver(
-                    self.link, bootloader=self.bootloader, blank=self.blank
+                    self.link,
+                    bootloader=self.bootloader,
+                    blank=self.blank,
+                    thermocouple=self.thermocouple,
                 )
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()

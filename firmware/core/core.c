@@ -10,13 +10,6 @@
 #include "hal.h"
 #include "proto.h"
 
-#ifndef ELEC_ADC_REF_MV
-#define ELEC_ADC_REF_MV 5000u /* AVcc: the Nano's 5 V (electrical.toml logic_supply_v) */
-#endif
-#ifndef ELEC_MOSFET_VDS_MIN_MV
-#define ELEC_MOSFET_VDS_MIN_MV 150u /* electrical.toml sink.mosfet_vds_min_v */
-#endif
-
 #define DUTY_MAX HAL_PWM_TOP
 /* Setpoint PWM counts per mA: 1000 * 256 / ELEC_SETPOINT_UA_PER_COUNT_Q8 (feed-forward). */
 #define FF_Q16_PER_MA ((uint32_t)((65536.0 * 256000.0) / ELEC_SETPOINT_UA_PER_COUNT_Q8 + 0.5))

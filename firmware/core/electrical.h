@@ -7,6 +7,9 @@
 #define ELEC_CURRENT_MAX_MA 2500u /* design maximum, mA */
 #define ELEC_DISSIPATION_MAX_MW 10000u /* MOSFET dissipation limit, mW */
 #define ELEC_SUPPLY_NOMINAL_MV 5000u /* wire supply, mV */
+#define ELEC_SOURCE_MOHM 60u /* supply source + leads + fuse resistance, mΩ */
+#define ELEC_MOSFET_VDS_MIN_MV 150u /* headroom the sink needs at 2.5 A, mV */
+#define ELEC_ADC_REF_MV 5000u /* ADC reference (AVcc), mV */
 #define ELEC_SUPPLY_MONITOR_DIV_Q16 32768u /* supply → ADC1 divider, Q16 */
 #define ELEC_SETPOINT_UA_PER_COUNT_Q8 665770u /* sink current per PWM count, µA·256 */
 #define ELEC_SETPOINT_FILTER_TAU_US 1000u /* each of the two PWM-filter poles, µs */

@@ -8,16 +8,6 @@
 #include "electrical.h"
 #include "sink.h"
 
-#ifndef ELEC_SOURCE_MOHM
-#define ELEC_SOURCE_MOHM 60u /* electrical.toml supply.source_resistance_ohm */
-#endif
-#ifndef ELEC_MOSFET_VDS_MIN_MV
-#define ELEC_MOSFET_VDS_MIN_MV 150u /* electrical.toml sink.mosfet_vds_min_v */
-#endif
-#ifndef ELEC_ADC_REF_MV
-#define ELEC_ADC_REF_MV 5000u /* AVcc */
-#endif
-
 static double supply_v = ELEC_SUPPLY_NOMINAL_MV / 1000.0;
 static double pole1_a, pole2_a, last_t = -1.0;
 

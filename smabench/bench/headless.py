@@ -52,6 +52,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         blank=args.blank,
         sensor_map=args.sensor_map,
         adapter_latency_s=args.adapter_latency_ms / 1000.0,
+        thermocouple=args.thermocouple,
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -218,6 +219,11 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
         metavar="FILE.csv",
         help="write what the plant really got (t_s, current_A, temperature_C, position_mm)",
     )
+    s.add_argument(
+        f"--{prefix}thermocouple",
+        action="store_true",
+        help="a MAX31855 thermocouple on the wire reports its temperature (temperature_C)",
+    )
 
 
 # --------------------------------------------------------------------------- smabench run
@@ -334,6 +340,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mock_args += ["--effect", e]
             if args.mock_trace:
                 mock_args += ["--trace", str(Path(args.mock_trace).resolve())]
+            if args.mock_thermocouple:
+                mock_args += ["--thermocouple"]
             mock_args += ["--sensor-map", args.sensor_map]  # it serves what the client reads
             mock_args += ["--adapter-latency-ms", f"{args.mock_adapter_latency_ms:g}"]
             mock = MockProcess(mock_args)

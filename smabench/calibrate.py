@@ -955,6 +955,7 @@ def _store_option(s: argparse.ArgumentParser) -> None:
 
 def add_commands(sub: Any) -> None:
     """Register ``calibrate`` and ``sensor`` on the CLI's subparsers."""
+    from smabench.physics.wire import PRESETS
     from smabench.settings import default
 
     c = sub.add_parser("calibrate", help="calibrate the current driver and measure the wire")
@@ -993,14 +994,20 @@ def add_commands(sub: Any) -> None:
     s.add_argument("--wire-length-mm", type=_positive, required=True, help="between the clamps")
     s.add_argument("--wire-diameter-mm", type=_positive, required=True, help="wire diameter")
     s.add_argument(
-        "--wire-preset", default=default("wire_preset"), help="material (resistivity, heat)"
+        "--wire-preset",
+        choices=sorted(PRESETS),
+        default=default("wire_preset"),
+        help="material: resistivity, heat balance",
     )
     s.add_argument(
         "--current-a", type=_positive, default=WIRE_CURRENT_A, help="measuring current, A (0.2)"
     )
     s.add_argument("--average-s", type=_positive, default=1.0, help="averaged, s (1)")
     s.add_argument(
-        "--tolerance-pct", type=_positive, default=WIRE_TOLERANCE * 100, help="(30)"
+        "--tolerance-pct",
+        type=_positive,
+        default=WIRE_TOLERANCE * 100,
+        help="refuse a resistance further off length x resistivity, %% (30)",
     )
     _store_option(s)
     s.set_defaults(func=lambda a: _run(cmd_calibrate_wire, a))

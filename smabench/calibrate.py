@@ -444,8 +444,9 @@ def calibrate_current(
         if m.faults:
             raise CalibrationError(f"fault while {current:g} A was on: {m.faults}; nothing written")
         if m.timed_out:
-            print(f"  (the output went off after {held.max_hold_s:.1f} s, the device's heat "
-                  "budget; the device readings are from before)", file=out)  # fmt: skip
+            print(f"  (the output went off at its hold limit, {held.max_hold_s:.1f} s: "
+                  "--max-hold-s or the device's heat budget; the device readings are from "
+                  "before)", file=out)  # fmt: skip
         device_a.append(m.current_a)
         meter_a.append(reading)
         print(f"  device {m.current_a:.4f} A (± {m.current_std_a * 1e3:.1f} mA, "

@@ -79,6 +79,9 @@ STEP_SCHEMA: dict[str, Key] = {
     "current_a": Key(float, "heating current", "A", 0.01, 2.5, default=1.0),
     "heat_s": Key(float, "heating time per cycle", "s", 0.05, 600.0, default=3.0),
     "cool_timeout_s": Key(float, "longest cooling per cycle", "s", 0.1, 3600.0, default=15.0),
+    "min_cool_s": Key(float, "shortest cooling before settling may end it (a wire still hot "
+                      "above Ms does not move, so it looks settled)", "s", 0.0, 3600.0,
+                      default=3.0),  # fmt: skip
     "partial_cool_s": Key(float, "incomplete: cooling before reheating", "s", 0.05, 600.0,
                           default=2.0),  # fmt: skip
     "inner_heat_s": Key(float, "inner: pulse heating", "s", 0.01, 60.0, default=0.4),
@@ -177,6 +180,7 @@ def run_settings(plan: Plan, step: dict[str, Any], session_id: str | None = None
     proto = ProtocolSettings(
         name=step["protocol"], cycles=step["cycles"], current_a=step["current_a"],
         heat_s=step["heat_s"], cool_timeout_s=step["cool_timeout_s"],
+        min_cool_s=min(step["min_cool_s"], step["cool_timeout_s"]),
         partial_cool_s=step["partial_cool_s"], inner_heat_s=step["inner_heat_s"],
         inner_cool_s=step["inner_cool_s"],
     )  # fmt: skip

@@ -158,7 +158,7 @@ def _read_instron(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, float
 @pytest.mark.skipif(not RAW.exists(), reason="shared raw exports not present")
 def test_raw_testing_machine_exports_several_cycles(tmp_path):
     """Chamber temperature (lags the wire): several cycles each, hotter at 172 than 100 MPa,
-    and a positive phase-diagram slope of the right order (the lag widens the hysteresis)."""
+    and positive phase-diagram slopes, Af and Ms of the literature's order."""
     folders = []
     for mpa in (100, 172):
         t_s, ext, temp, stress = _read_instron(RAW / f"flexinol_isobaric_trained_{mpa}MPa.csv")
@@ -324,3 +324,32 @@ def test_measured_temperature_preferred_and_source_in_every_output(tmp_path):
     write_csv(doc, tmp_path / "c.csv")
     rows = (tmp_path / "c.csv").read_text().splitlines()
     assert all(",measured," in r for r in rows[1:])
+
+
+def test_plant_with_a_known_stress_shift(tmp_path):
+    """The project's plant with its Clausius–Clapeyron shift on (7.5 MPa/K) and its hysteresis
+    shrink (0.03 K/MPa): the slopes of As, Af, Ms follow the plant's own temperatures within
+    5 %; Mf within 20 % (cooling slows near ambient, so the plant's cooling lag changes with
+    load). Temperatures within 4 K of the plant's (kinetic lags of 0.05 / 0.5 s, estimate)."""
+    from smabench.cli import simulate_session
+    from smabench.physics.effects import Effects
+    from smabench.physics.plant import transformation_temperatures_c
+    from smabench.physics.wire import PRESETS
+
+    folders, loads = [], (1.0, 1.5, 2.0)
+    for kg in loads:
+        f = tmp_path / f"s{kg}"
+        simulate_session(f, kg, 3, 1.4, 6.0, 16.0, "complete", ["stress_shift=7.5"], 50.0,
+                         0.002, 0)  # fmt: skip
+        folders.append(str(f))
+    doc = characterize_many(folders, workers=1)
+    eff = Effects.from_strings(["stress_shift=7.5"])
+    plant = [transformation_temperatures_c(kg, PRESETS["paper"], eff) for kg in loads]
+    sig = [s["load_MPa"] for s in doc["sessions"]]
+    for key, pk, tol in (("As", "as_c", 0.05), ("Af", "af_c", 0.05), ("Ms", "ms_c", 0.05),
+                         ("Mf", "mf_c", 0.20)):  # fmt: skip
+        expected = np.polyfit([p[pk] for p in plant], sig, 1)[0]
+        got = doc["phase_diagram"][key]["slope_MPa_per_K"]
+        assert got == pytest.approx(expected, rel=tol), (key, got, expected)
+        for s, p in zip(doc["sessions"], plant, strict=True):
+            assert all(abs(c[f"{key}_C"] - p[pk]) < 4.0 for c in s["cycles"])

@@ -39,7 +39,9 @@ ranges chosen by progress, and the transformation line uses the central half of 
 transformation instead of one steepest point. A plateau with fewer than 3 groups gets a flat
 line through what is there (noted), a transformation line with fewer than 2 groups widens its
 band to 0.1–0.9; an intersection outside the branch's temperature range (± its span) or out of
-order (As > Af) is reported as null with a note, never guessed.
+order (As > Af), or on a "plateau" steeper than a quarter of the transformation line (the
+branch ended inside the transformation: heated or cooled too little), is reported as null with a
+note, never guessed; the other end of that branch is still reported.
 
 **Strains** are position / wire length (offset as the sensor's zero; only differences are
 physical). Per cycle: actuation strain = ε(end of cooling, LCT) − ε(UCT); heating / cooling
@@ -68,6 +70,8 @@ MIN_POINTS_PER_BRANCH = 12
 PLATEAU_P = 0.05
 TRANSFORMATION_P = (0.25, 0.75)
 TRANSFORMATION_P_WIDE = (0.10, 0.90)
+PLATEAU_SLOPE_FRACTION = 0.25
+"""A plateau line steeper than this fraction of the transformation line is no plateau."""
 MIN_TRANSFORMATION_FRACTION = 0.2
 """A branch whose strain change is below this fraction of the record's largest change shows no
 transformation (a partial or failed cycle): its temperatures are null."""
@@ -236,8 +240,16 @@ def tangent_branch(t_c: np.ndarray, strain: np.ndarray, kind: str, min_change: f
     p_cold = _intersect(cold_line, trans)
     p_hot = _intersect(hot_line, trans)
     span = float(gt.max() - gt.min())
+    trans_slope = abs(1.0 / trans.b) if trans.b else math.inf  # strain per K
     ok = []
-    for name, pt in (("martensite", p_cold), ("austenite", p_hot)):
+    for name, pt, line in (("martensite", p_cold, cold_line), ("austenite", p_hot, hot_line)):
+        if abs(line.b) > PLATEAU_SLOPE_FRACTION * trans_slope:
+            # the branch ended inside the transformation (heated or cooled too little):
+            # what is left at that end is no plateau, so no intersection there
+            notes.append(f"{kind}: no {name} plateau (the branch ends inside the "
+                         "transformation)")  # fmt: skip
+            ok.append(None)
+            continue
         good = pt is not None and gt.min() - span <= pt[0] <= gt.max() + span
         if not good:
             notes.append(f"{kind}: {name} intersection outside the data")

@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from smabench.physics.loop_models import (
     CommonPoints,
@@ -36,6 +37,7 @@ from smabench.physics.loop_models import (
     branch_directions,
     run_history,
 )
+from smabench.physics.memory import branch_runs
 
 log = logging.getLogger(__name__)
 
@@ -167,10 +169,14 @@ def find_common_points(loop: LoopData) -> CommonPoints:
 
 
 # --------------------------------------------------------------------------- fitting
-def _refine(residual: Callable, x0, lo, hi, what: str):
+def _refine(residual: Callable, x0, lo, hi, what: str, max_nfev: int = 4000, tol: float = 1e-8):
     x0 = np.clip(np.asarray(x0, dtype=float), lo, hi)
     try:
-        res = least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=4000)
+        # one BLAS thread: the SVDs of these tall, thin Jacobians are fastest on one core, and
+        # a threaded BLAS on a busy 2-core machine made each one ~100x slower
+        with threadpool_limits(1, user_api="blas"):
+            res = least_squares(residual, x0, bounds=(lo, hi), x_scale="jac", max_nfev=max_nfev,
+                                ftol=tol, xtol=tol)  # fmt: skip
     except (ValueError, np.linalg.LinAlgError) as exc:
         raise FitError(f"{what}: least squares failed: {exc}") from exc
     if not np.all(np.isfinite(res.fun)):
@@ -265,7 +271,19 @@ def fit_model1(loop: LoopData) -> Model1:
         cost = float(np.sum((model.evaluate(t, h) - y) ** 2))
         if cost < best_cost:
             best, best_cost = model, cost
-    return best
+    runs = partial_loop_runs(loop, best)
+    if runs is None:
+        return best
+    # partial loops in the data: refit along the history (the paper's minor branches)
+    ts, ys, runs = _history_samples(loop, best, runs)
+    x0 = [*_cp_vector(best.cp), best.a1_mm, best.a21_mm, best.a22_mm, best.f12,
+          math.log(best.aspect_k_per_mm)]  # fmt: skip
+    x = _refine(lambda x: run_history(build(x), ts, loop.deadband_k, bool(h[0]), runs) - ys,
+                x0, lo, hi, "model 1 on partial loops", max_nfev=HISTORY_MAX_NFEV,
+                tol=1e-6)  # fmt: skip
+    model = build(x)
+    model.fitted_on_history = True
+    return model
 
 
 def fit_model2(loop: LoopData) -> Model2:
@@ -313,11 +331,62 @@ def fit_model2(loop: LoopData) -> Model2:
             best, best_cost = model, cost
     model = best
     model.untuned_nrmse_percent = _nrmse(untuned.evaluate(t, h) - y, s)
-    return model
+    runs = partial_loop_runs(loop, model)
+    if runs is None:
+        return model
+    # partial loops in the data: refit along the history (the paper's minor branches)
+    ts, ys, runs = _history_samples(loop, model, runs)
+    x0 = [*_cp_vector(model.cp), model.f, model.c11, model.c21, model.c22, model.g]
+    x = _refine(lambda x: run_history(build(x), ts, loop.deadband_k, bool(h[0]), runs) - ys,
+                x0, lo, hi, "model 2 on partial loops", max_nfev=HISTORY_MAX_NFEV,
+                tol=1e-6)  # fmt: skip
+    refit = build(x)
+    refit.untuned_nrmse_percent = model.untuned_nrmse_percent
+    refit.fitted_on_history = True
+    return refit
+
+
+HISTORY_MAX_NFEV = 300
+"""Evaluations of the refit along a history with partial loops (each one runs the history)."""
+PARTIAL_SHARE = 0.05
+"""Share of the samples that must lie on minor branches for a refit along the history."""
+
+
+def partial_loop_runs(loop: LoopData, model) -> list | None:
+    """The branch runs of the data's history (:func:`~smabench.physics.memory.branch_runs`)
+    when at least :data:`PARTIAL_SHARE` of the samples lie on minor branches (branches that
+    start at a reversal inside the loop), else None: a major loop fit is all there is to do."""
+    cp = model.common_points() if hasattr(model, "common_points") else model.cp
+    t = loop.temperature_c
+    runs = branch_runs(t, cp.t1_c, cp.t2_c, loop.deadband_k, bool(loop.heating[0]))
+    minor = sum(r.i1 - r.i0 for r in runs if r.start >= 0 and r.i1 - r.i0 >= 3)
+    return runs if minor >= max(MIN_POINTS, PARTIAL_SHARE * t.size) else None
+
+
+HISTORY_SAMPLES = 3000  # samples of a refit along the history
+MAJOR_FIT_SAMPLES = 10_000  # samples of the major-loop law's fit
+
+
+def _history_samples(loop: LoopData, model, runs) -> tuple[np.ndarray, np.ndarray, list]:
+    """At most about :data:`HISTORY_SAMPLES` samples of the history for a refit along it: every
+    k-th sample plus the first and last of every branch run (the reversal points stay)."""
+    t, y = loop.temperature_c, loop.position_mm
+    k = int(math.ceil(t.size / HISTORY_SAMPLES))
+    if k <= 1:
+        return t, y, runs
+    keep = np.zeros(t.size, bool)
+    keep[::k] = True
+    for r in runs:
+        keep[r.i0] = keep[r.i1 - 1] = True
+    cp = model.common_points() if hasattr(model, "common_points") else model.cp
+    ts, ys = t[keep], y[keep]
+    return ts, ys, branch_runs(ts, cp.t1_c, cp.t2_c, loop.deadband_k, bool(loop.heating[0]))
 
 
 def fit_sigmoid(loop: LoopData) -> SigmoidModel:
-    """Our model: two-component logistic fractions on each branch, by least squares."""
+    """Our model: two-component logistic fractions on each branch, by least squares on the
+    major-loop law; when the data hold partial loops (:func:`partial_loop_runs`), refined along
+    the history with the minor-branch law's ``memory_theta``."""
     t, y, h = loop.temperature_c, loop.position_mm, loop.heating
     t_ref = float(t.min())
     span = float(t.max() - t.min())
@@ -351,8 +420,25 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
             FractionBranch(*map(float, x[4:9])), FractionBranch(*map(float, x[9:14])), t_ref,
         )  # fmt: skip
 
-    x = _refine(lambda x: build(x).evaluate(t, h) - y, x0, lo, hi, "sigmoid model")
-    return build(x)
+    k = int(math.ceil(t.size / MAJOR_FIT_SAMPLES))  # the major-loop law: every k-th sample will do
+    x = _refine(lambda x: build(x).evaluate(t[::k], h[::k]) - y[::k], x0, lo, hi, "sigmoid model")
+    runs = partial_loop_runs(loop, build(x))
+    if runs is None:
+        return build(x)
+    # partial loops in the data: refit along the history, the minor-branch law's θ included
+
+    def build_theta(x) -> SigmoidModel:
+        m = build(x)
+        m.memory_theta = float(x[14])
+        return m
+
+    ts, ys, runs = _history_samples(loop, build(x), runs)
+    x = _refine(lambda x: run_history(build_theta(x), ts, loop.deadband_k, bool(h[0]), runs) - ys,
+                [*x, 2.0], lo + [-10.0], hi + [60.0], "sigmoid model on partial loops",
+                max_nfev=HISTORY_MAX_NFEV, tol=1e-6)  # fmt: skip
+    model = build_theta(x)
+    model.fitted_on_history = True
+    return model
 
 
 def fit_preisach(loop: LoopData):
@@ -390,7 +476,7 @@ def fit_loop(
     loop = prepare_loop(temperature_c, position_mm)
     fitted = MODELS[model](loop)
     result = FitResult(model, {}, 0.0, 0.0, 0.0, loop.temperature_c.size, fitted, loop.deadband_k)
-    if hasattr(fitted, "evaluate"):
+    if hasattr(fitted, "evaluate") and not getattr(fitted, "fitted_on_history", False):
         pred = fitted.evaluate(loop.temperature_c, loop.heating)
     else:
         pred = result.predict(loop.temperature_c)

@@ -6,13 +6,20 @@ import numpy as np
 import pytest
 from conftest import flexinol_files
 
-from smabench.physics.identify import FitError, fit_loop, prepare_loop
+from smabench.physics.identify import (
+    FitError,
+    fit_from_document,
+    fit_loop,
+    model_document,
+    prepare_loop,
+)
 from smabench.physics.loop_models import (
     CommonPoints,
     LoopStepper,
     Model2,
     branch_directions,
 )
+from smabench.physics.memory import ReversalMemory, TurnDetector
 
 CLOSED_FORM = ("1", "2", "sigmoid")
 
@@ -124,3 +131,102 @@ def test_bad_input_raises_fit_error():
     with pytest.raises(FitError, match="unknown model"):
         fit_loop(t, y, "nope")
     assert issubclass(FitError, ValueError)
+
+
+# --------------------------------------------------------------------------- reversals, sign
+REVERSAL_PATH_C = (30, 75, 72, 80, 77, 140, 100, 70, 73, 60, 63, 30)
+
+
+def _reversal_path(step_k: float = 0.1) -> np.ndarray:
+    pts = REVERSAL_PATH_C
+    legs = zip(pts[:-1], pts[1:], strict=True)
+    return np.concatenate([np.linspace(a, b, round(abs(b - a) / step_k) + 1)[1:] for a, b in legs])
+
+
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_no_jump_at_small_reversals_inside_the_transformation(fits, model):
+    """Small reversals (3 K back, deadband 2.2 K) inside the transformation: the path is
+    continuous; the largest step between samples is a few typical steps (before: the stepper
+    retraced the old branch inside the deadband and then jumped by up to 0.55 mm, ~30×)."""
+    _, y, res = fits
+    seq = _reversal_path()
+    path = res[model].stepper().run(seq)
+    steps = np.abs(np.diff(path))
+    typical = np.percentile(steps, 95)
+    assert steps.max() <= 4.0 * typical, (steps.max(), typical)
+    # at every reversal of the path the model turns where it was: no step above typical
+    turns = np.nonzero(np.diff(np.sign(np.diff(seq))) != 0)[0] + 1
+    for k in turns:
+        window = steps[k : k + 30]  # the deadband's worth of samples after the turn
+        assert window.max() <= 2.0 * typical, (seq[k], window.max(), typical)
+
+
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_fit_does_not_depend_on_the_sign_of_position(fits, model):
+    """Fitting −y gives the mirrored model: equal nrmse and the mirrored path with reversals."""
+    t, y, res = fits
+    fit = res[model]
+    mirrored = fit_loop(t, -y, model)
+    assert mirrored.nrmse_percent == pytest.approx(fit.nrmse_percent, abs=0.1)
+    seq = _reversal_path()
+    a, b = fit.stepper().run(seq), mirrored.stepper().run(seq)
+    assert np.max(np.abs(a + b)) < 1e-3 * np.ptp(y)
+
+
+@pytest.mark.parametrize("model", CLOSED_FORM)
+def test_history_run_by_run_equals_the_online_stepper(fits, model):
+    """FitResult.predict evaluates run by run (vectorised); the online stepper sample by sample:
+    the same memory rules give the same path, noise-made pending reversals included."""
+    _, _, res = fits
+    fit = res[model]
+    seq = _reversal_path() + np.random.default_rng(3).normal(0.0, 0.3, _reversal_path().size)
+    stepper = fit.stepper()
+    stepper.reset(bool(branch_directions(seq, fit.deadband_k)[0]))
+    assert np.max(np.abs(stepper.run(seq) - fit.predict(seq))) < 1e-9
+
+
+def test_fitted_model_document_keeps_the_minor_branch_law(fits):
+    _, _, res = fits
+    fit = res["sigmoid"]
+    fit.loop_model.memory_theta = 4.0
+    try:
+        back = fit_from_document(model_document(fit))
+        seq = _reversal_path()
+        assert back.loop_model.memory_theta == 4.0
+        assert np.array_equal(back.predict(seq), fit.predict(seq))
+    finally:
+        fit.loop_model.memory_theta = 0.0
+
+
+# --------------------------------------------------------------------------- reversal memory
+def test_turn_detector_ignores_moves_inside_the_deadband():
+    det = TurnDetector(deadband=1.0)
+    assert [det.update(x) for x in (0.0, 2.0, 1.2, 2.5, 1.4)] == [False] * 4 + [True]
+    assert det.turn_at == 2.5 and not det.rising and det.extreme == 1.4
+    assert det.backing(1.9) and not det.backing(1.0)
+
+
+def test_reversal_memory_nests_and_wipes_inner_loops():
+    mem = ReversalMemory((50.0, 2.0), (100.0, 0.0))
+    mem.reverse((90.0, 0.5))  # heating stopped at 90 °C: cooling from there to the low point
+    assert mem.start_target() == ((90.0, 0.5), (50.0, 2.0)) and not mem.heating
+    mem.reverse((70.0, 1.5))  # inner loop: heads back for the 90 °C point
+    assert mem.start_target() == ((70.0, 1.5), (90.0, 0.5)) and mem.inner()
+    assert mem.wipe(89.0) == 0 and mem.wipe(91.0) == 1  # passing 90 °C wipes the inner loop
+    assert mem.stack == [] and mem.start_target() == ((50.0, 2.0), (100.0, 0.0))
+    mem.reverse((120.0, -0.1))  # beyond the hot common point: a complete half cycle
+    assert mem.stack == [] and not mem.heating
+
+
+def test_reversal_memory_driven_by_position_and_of_limited_depth():
+    """The controller's inverse drives the memory with the setpoint (key 1); the wire shortens on
+    heating, so a heating branch wipes when the setpoint falls below its target."""
+    mem = ReversalMemory((50.0, 2.0), (100.0, 0.0), key=1)
+    mem.reverse((90.0, 0.5))
+    mem.reverse((70.0, 1.5))  # heating again, heads for (90, 0.5)
+    assert mem.wipe(0.6) == 0 and mem.wipe(0.4) == 1
+    short = ReversalMemory((50.0, 2.0), (100.0, 0.0), depth=1)
+    short.reverse((90.0, 0.5))
+    short.reverse((70.0, 1.5))
+    assert short.stack == [(70.0, 1.5)]  # the paper's moved first common point only
+    assert short.start_target() == ((70.0, 1.5), (100.0, 0.0))

@@ -24,7 +24,9 @@ not when the temperature is noisy). Then, in two passes:
    pass: the mean strain of the first and last 10 % of the groups; second pass: the two plateau
    lines fitted in pass 1, so a sloped plateau, thermal expansion, does not bias p);
 2. the **martensite line** is a least-squares line ε(T) through the groups with p ≤ 0.05 on the
-   cold side of the transformation, the **austenite line** through p ≥ 0.95 on the hot side;
+   cold side of the transformation, the **austenite line** through p ≥ 0.95 on the hot side
+   (narrowed to the far 2 %, then 1 %, when that line is steeper than a quarter of the
+   transformation line: a plateau still curving, as behind a lagging chamber);
    the **transformation line** is a least-squares line T(ε) through the groups with
    0.25 ≤ p ≤ 0.75 (T on ε because the transformation is steep in T); finally it is refitted
    through the raw samples in that band (at least 8, widening the band to 0.1–0.9 until there
@@ -223,6 +225,21 @@ def tangent_branch(t_c: np.ndarray, strain: np.ndarray, kind: str, min_change: f
         if len(t_idx) < 2 and 0 < mid < n:  # one step across: the secant over it
             t_idx = np.array([mid - 1, mid])
         trans = _fit(ge[t_idx], gt[t_idx]) if len(t_idx) >= 2 else None
+    # a plateau still curving into the transformation (a lagging chamber, a short dwell):
+    # keep only its far end (p within 2 %, then 1 %) when that is flat enough
+    if trans is not None and trans.b:
+        steep = PLATEAU_SLOPE_FRACTION * abs(1.0 / trans.b)
+        for frac in (0.02, 0.01):
+            if abs(cold_line.b) > steep:
+                idx = np.flatnonzero((p <= frac) & (np.arange(n) < mid))
+                line = _fit(gt[idx], ge[idx]) if len(idx) >= 3 else None
+                if line is not None and abs(line.b) <= steep:
+                    cold_line = line
+            if abs(hot_line.b) > steep:
+                idx = np.flatnonzero((p >= 1.0 - frac) & (np.arange(n) >= mid))
+                line = _fit(gt[idx], ge[idx]) if len(idx) >= 3 else None
+                if line is not None and abs(line.b) <= steep:
+                    hot_line = line
     # final transformation line from the raw samples in the band (progress against the plateau
     # lines): the groups average noise well on the plateaus, but a fast transformation holds
     # only a few groups, and with a noisy temperature their line can tilt either way

@@ -460,11 +460,25 @@ def main(argv: Sequence[str] | None = None) -> int:
         msg = str(exc) or exc.__class__.__name__
         print(f"smabench {args.command}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE
+    except device_errors() as exc:  # a port that cannot be opened, a device that does not answer
+        if args.verbose:
+            raise
+        msg = str(exc) or exc.__class__.__name__
+        print(f"smabench {args.command}: device error: {msg}", file=sys.stderr)
+        return EXIT_USAGE
     except ImportError as exc:  # a missing GUI library or Qt system library: say what to install
         if args.verbose:
             raise
         print(f"smabench {args.command}: error: {missing_library_hint(exc)}", file=sys.stderr)
         return EXIT_USAGE
+
+
+def device_errors() -> tuple[type[BaseException], ...]:
+    """The drivers' errors: the environment, not a bug (imported only when something failed)."""
+    from smabench.drivers.displacement import SensorError
+    from smabench.drivers.link import LinkError
+
+    return (LinkError, SensorError)
 
 
 QT_SYSTEM_PACKAGES = "libegl1 libgl1 libxkbcommon0 libfontconfig1 libdbus-1-3 libglib2.0-0"

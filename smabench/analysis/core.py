@@ -403,8 +403,9 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray
         xt = x.copy()
         if "tau_s" in idx:
             xt[idx["tau_s"]] = tau
-        if "c_mid" in guess and "h_mid" in guess:
-            guess["hyst_k"] = max(guess["h_mid"] - guess.pop("c_mid"), 1.0)
+        if "c_mid" in guess:  # the cooling centre as the loop's width below the heating one
+            h_mid = guess.get("h_mid", float(xt[idx["h_mid"]]))
+            guess["hyst_k"] = max(h_mid - guess.pop("c_mid"), 1.0)
         for k, v in guess.items():
             xt[idx[k]] = v
         xt = np.clip(xt, lo, hi)

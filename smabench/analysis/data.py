@@ -15,9 +15,10 @@ from smabench.analysis.candidates import (
     RHO_KG_M3,
 )
 from smabench.analysis.model import Grid
+from smabench.physics.wire import PAPER_WIRE
 
-DEFAULT_LENGTH_MM = 55.0
-DEFAULT_DIAMETER_MM = 0.38
+DEFAULT_LENGTH_MM = PAPER_WIRE.length_mm
+DEFAULT_DIAMETER_MM = PAPER_WIRE.diameter_mm
 DEFAULT_AMBIENT_C = 22.0
 
 

@@ -22,6 +22,24 @@ KEYS = ("As_C", "Af_C", "Ms_C", "Mf_C")
 # README beside the data) makes the wire 100 / 0.418 ≈ 239 mm long
 RAW_GAUGE_MM = 100.0 * 0.10769 / 0.045
 
+@pytest.fixture
+def cli(capsys):
+    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
+    from types import SimpleNamespace
+
+    from smabench.cli import main
+
+    def run(*args, check: bool = False):
+        capsys.readouterr()
+        code = main([str(a) for a in args])
+        out, err = capsys.readouterr()
+        if check:
+            assert code == 0, err
+        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
+
+    return run
+
+
 
 def _known(br: Branches) -> list[float]:
     return [br.As, br.Af, br.Ms, br.Mf]
@@ -87,7 +105,7 @@ def test_noise_does_not_make_false_cycles():
     assert len(split_cycles(hot_dwell)) == 1
 
 
-def test_bad_input_no_cycle_and_too_few_points(tmp_path, run_cli):
+def test_bad_input_no_cycle_and_too_few_points(tmp_path, cli):
     with pytest.raises(CharacterizeError, match="no complete thermal cycle"):
         characterize_arrays(np.linspace(20, 100, 50), np.linspace(0, 1, 50))
     br = Branches()
@@ -97,19 +115,19 @@ def test_bad_input_no_cycle_and_too_few_points(tmp_path, run_cli):
     folder = tmp_path / "s"
     write_session(folder, {"wire": {"length_mm": 50}},
                   {"temperature_C": t, "position_mm": e * 50})  # fmt: skip
-    proc = run_cli("characterize", folder, "--json", tmp_path / "o.json")
+    proc = cli("characterize", folder, "--json", tmp_path / "o.json")
     assert proc.returncode == 2 and "too few points per branch" in proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
     assert not (tmp_path / "o.json").exists()
-    proc = run_cli("characterize", tmp_path / "nope", "--json", tmp_path / "o.json")
+    proc = cli("characterize", tmp_path / "nope", "--json", tmp_path / "o.json")
     assert proc.returncode == 2 and "no such session" in proc.stderr
 
 
-def _import_flexinol(run_cli, tmp_path) -> list[Path]:
+def _import_flexinol(cli, tmp_path) -> list[Path]:
     out = []
     for mpa in (100, 172):
         folder = tmp_path / f"flex{mpa}"
-        run_cli("import", FLEX / f"filtered_data_{mpa}MPa.txt", "--columns",
+        cli("import", FLEX / f"filtered_data_{mpa}MPa.txt", "--columns",
                 "temperature_C,strain,stress_MPa", "--wire-length-mm", "100", "--out", folder,
                 check=True)  # fmt: skip
         out.append(folder)
@@ -117,12 +135,12 @@ def _import_flexinol(run_cli, tmp_path) -> list[Path]:
 
 
 @pytest.mark.skipif(not FLEX.exists(), reason="shared Flexinol data not present")
-def test_flexinol_isobaric_phase_diagram_slope(tmp_path, run_cli):
+def test_flexinol_isobaric_phase_diagram_slope(tmp_path, cli):
     """Two measured loops at 100 and 172 MPa: Clausius–Clapeyron slopes near the literature's
     7–8 MPa/K for NiTi, transformation temperatures higher under more stress."""
-    folders = _import_flexinol(run_cli, tmp_path)
+    folders = _import_flexinol(cli, tmp_path)
     out = tmp_path / "c.json"
-    proc = run_cli("characterize", *folders, "--json", out, "--csv", tmp_path / "c.csv",
+    proc = cli("characterize", *folders, "--json", out, "--csv", tmp_path / "c.csv",
                    "--report", tmp_path / "rep", check=True)  # fmt: skip
     doc = json.loads(out.read_text())
     s100, s172 = doc["sessions"]
@@ -241,6 +259,7 @@ def test_local_processes_and_dask_cluster_give_identical_results(tmp_path):
     assert local["phase_diagram"]["As"]["slope_MPa_per_K"] > 0
 
 
+@pytest.mark.slow  # the Dask client tries for its connect timeout
 def test_unreachable_scheduler_is_one_line(tmp_path, run_cli):
     folder = _bench_session(tmp_path / "s", Branches(round_k=2.0), 3, 1.0)
     proc = run_cli("characterize", folder, "--json", tmp_path / "o.json", "--scheduler",

@@ -54,6 +54,24 @@ inner_heat_s = 0.5
 inner_cool_s = 1.5
 """
 
+@pytest.fixture
+def cli(capsys):
+    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
+    from types import SimpleNamespace
+
+    from smabench.cli import main
+
+    def run(*args, check: bool = False):
+        capsys.readouterr()
+        code = main([str(a) for a in args])
+        out, err = capsys.readouterr()
+        if check:
+            assert code == 0, err
+        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
+
+    return run
+
+
 
 def _plan(tmp_path: Path, text: str = PLAN) -> Path:
     p = tmp_path / "plan.toml"
@@ -61,10 +79,10 @@ def _plan(tmp_path: Path, text: str = PLAN) -> Path:
     return p
 
 
-def test_example_plan_is_valid_and_its_dry_run_fits_in_minutes(run_cli):
+def test_example_plan_is_valid_and_its_dry_run_fits_in_minutes(cli):
     plan = load_plan(EXAMPLE)
     assert len(plan.steps) == 3 and plan.settings["mock_speed"] > 1
-    proc = run_cli("plan", "run", EXAMPLE, "--dry-run", check=True)
+    proc = cli("plan", "run", EXAMPLE, "--dry-run", check=True)
     assert "load change" in proc.stdout and "limits:" in proc.stdout
     total = sum(planmod.step_budget(plan, s)["duration_s"] for s in plan.steps)
     assert total / plan.settings["mock_speed"] < 120  # a few minutes on the mock, at most

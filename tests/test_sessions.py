@@ -17,6 +17,25 @@ from smabench.sessions import (
 )
 
 
+@pytest.fixture
+def cli(capsys):
+    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
+    from types import SimpleNamespace
+
+    from smabench.cli import main
+
+    def run(*args, check: bool = False):
+        capsys.readouterr()
+        code = main([str(a) for a in args])
+        out, err = capsys.readouterr()
+        if check:
+            assert code == 0, err
+        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
+
+    return run
+
+
+
 def test_writer_header_order_and_roundtrip(tmp_path):
     folder = tmp_path / "s1"
     with SessionWriter(folder, {"load_kg": 2.0}) as w:
@@ -100,7 +119,7 @@ def test_thermometer_csv_without_time_gets_row_index(tmp_path):
     assert read_samples_csv(f)["position_mm"][2] == 1.0
 
 
-def test_export_all_and_chosen_columns(tmp_path, run_cli):
+def test_export_all_and_chosen_columns(tmp_path, cli):
     folder = tmp_path / "s"
     write_session(
         folder,
@@ -113,13 +132,13 @@ def test_export_all_and_chosen_columns(tmp_path, run_cli):
         },
     )
     out = tmp_path / "all.csv"
-    run_cli("export", folder, "--out", out, check=True)
+    cli("export", folder, "--out", out, check=True)
     lines = out.read_text().splitlines()
     assert lines[0] == ",".join(COLUMNS) and len(lines) == 3
     out2 = tmp_path / "some.csv"
-    run_cli("export", folder, "--out", out2, "--columns", "position_mm,t_s,mode", check=True)
+    cli("export", folder, "--out", out2, "--columns", "position_mm,t_s,mode", check=True)
     assert out2.read_text().splitlines() == ["position_mm,t_s,mode", "1.5,0.0,pid", "1.25,0.5,ff"]
-    proc = run_cli("export", folder, "--out", tmp_path / "bad.csv", "--columns", "nope")
+    proc = cli("export", folder, "--out", tmp_path / "bad.csv", "--columns", "nope")
     assert proc.returncode == 2 and "unknown column" in proc.stderr
     assert not (tmp_path / "bad.csv").exists()
 
@@ -132,7 +151,7 @@ def _mode(path) -> int:
     return stat.S_IMODE(os.stat(path).st_mode)
 
 
-def test_every_written_file_respects_the_umask(tmp_path, run_cli):
+def test_every_written_file_respects_the_umask(tmp_path, cli):
     """session.json, samples.csv, cycles.csv, exports and fit JSON all get 0666 & ~umask."""
     import os
 
@@ -150,7 +169,7 @@ def test_every_written_file_respects_the_umask(tmp_path, run_cli):
         os.umask(0o077)
         assert _mode(atomic_write(tmp_path / "c.txt", "private")) == 0o600
         os.umask(0o022)
-        run_cli("export", folder, "--out", tmp_path / "e.csv", check=True)
+        cli("export", folder, "--out", tmp_path / "e.csv", check=True)
         assert _mode(tmp_path / "e.csv") == 0o644
     finally:
         os.umask(old)
@@ -208,7 +227,7 @@ def test_temperature_column_new_and_old_sessions(tmp_path):
     assert s1.data["position_mm"][0] == 2.0 and s1.meta["schema_version"] == 1
 
 
-def test_long_session_rotates_chunks_at_cycle_boundaries_and_reads_as_one(tmp_path, run_cli):
+def test_long_session_rotates_chunks_at_cycle_boundaries_and_reads_as_one(tmp_path, cli):
     folder = tmp_path / "long"
     rows_per_cycle, cycles = 7, 40
     with SessionWriter(folder, {}, chunk_rows=50) as w:
@@ -227,7 +246,7 @@ def test_long_session_rotates_chunks_at_cycle_boundaries_and_reads_as_one(tmp_pa
     np.testing.assert_array_equal(s.data["position_mm"], np.arange(cycles * rows_per_cycle))
     assert sum(len(c["t_s"]) for c in iter_sample_chunks(folder, ["t_s"])) == len(s)
     out = tmp_path / "all.csv"
-    run_cli("export", folder, "--out", out, check=True)
+    cli("export", folder, "--out", out, check=True)
     assert len(out.read_text().splitlines()) == cycles * rows_per_cycle + 1
     summary = read_samples_csv(folder / "cycles.csv")
     np.testing.assert_array_equal(summary["cycle"], np.arange(cycles))

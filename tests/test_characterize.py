@@ -142,7 +142,7 @@ def test_flexinol_isobaric_phase_diagram_slope(tmp_path, cli):
     out = tmp_path / "c.json"
     proc = cli("characterize", *folders, "--json", out, "--csv", tmp_path / "c.csv",
                    "--report", tmp_path / "rep", check=True)  # fmt: skip
-    doc = json.loads(out.read_text())
+    doc = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"{c} in JSON"))
     s100, s172 = doc["sessions"]
     assert s100["temperature_source"] == "measured" and s100["load_MPa"] == pytest.approx(100, 3)
     assert s172["load_MPa"] == pytest.approx(172, abs=4)

@@ -221,14 +221,25 @@ def characterize_many(
     }
 
 
+def _finite(obj: Any) -> Any:
+    """NaN/inf → None all the way down: strict JSON for other tools (null = not determined)."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    return obj
+
+
 def strip_private(doc: dict[str, Any]) -> dict[str, Any]:
-    """The document without plot-only entries (keys starting with '_')."""
-    return {
+    """The document without plot-only entries (keys starting with '_'), strict JSON values."""
+    return _finite({
         **doc,
         "sessions": [
             {k: v for k, v in s.items() if not k.startswith("_")} for s in doc["sessions"]
         ],
-    }
+    })  # fmt: skip
 
 
 def branches_of(doc: dict[str, Any]) -> dict[str, dict[int, tuple[BranchResult, BranchResult]]]:

@@ -386,10 +386,11 @@ def test_bench_control_offline_case_settles_every_step_edge():
 def test_bench_control_smoke_on_the_mock(tmp_path):
     from smabench.bench.control_bench import Case, format_table, run_case
 
-    # the benchmark's loop period in device time (12.5 ms): FF+PID's observer needs ≤ 25 ms
-    row = run_case(Case("sine 10 s", "sine", 10.0, 1, 2.0, "ffpid"), speed=5.0, rate_hz=400.0)
+    # FF+PID's observer needs ≤ 25 ms of device time per tick: 2× speed at 100 Hz gives 20 ms
+    # (the benchmark's own 5× at 400 Hz needs a quiet machine; its figures are its own)
+    row = run_case(Case("sine 10 s", "sine", 10.0, 1, 2.0, "ffpid"), speed=2.0, rate_hz=100.0)
     assert row["samples"] > 100 and 0.0 < row["rms_mm"] < 1.0
-    step = run_case(Case("step", "step", 20.0, 1, 2.0, "pid"), speed=10.0, rate_hz=200.0)
+    step = run_case(Case("step", "step", 20.0, 1, 2.0, "pid"), speed=5.0, rate_hz=100.0)
     assert "settle_s" in step and step["settled"].split("/")[1] == "2"  # two step edges
     text = format_table([row, step])
     assert "RMS mm" in text and "sine 10 s" in text
@@ -397,8 +398,9 @@ def test_bench_control_smoke_on_the_mock(tmp_path):
 
 def test_run_cli_closed_loop_with_switch(run_cli, tmp_path):
     proc = run_cli(
-        "run", "--mock", "--mock-speed", "10", "--load-kg", "2", "--protocol", "sine",
-        "--controller", "pid", "--period-s", "10", "--cycles", "1", "--lead-in-s", "3",
+        "run", "--mock", "--mock-speed", "4", "--rate-hz", "100", "--load-kg", "2",
+        "--protocol", "sine", "--controller", "pid", "--period-s", "10", "--cycles", "1",
+        "--lead-in-s", "3",
         "--switch-at", "8:ffpid", "--out", tmp_path, "--session-id", "s", "--quiet",
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -417,8 +419,9 @@ def test_run_cli_closed_loop_with_switch(run_cli, tmp_path):
 
 def test_run_cli_takes_ffpid_gains_and_stores_them(run_cli, tmp_path):
     proc = run_cli(
-        "run", "--mock", "--mock-speed", "10", "--load-kg", "2", "--protocol", "step",
-        "--controller", "ffpid", "--period-s", "4", "--cycles", "1", "--lead-in-s", "1",
+        "run", "--mock", "--mock-speed", "4", "--rate-hz", "100", "--load-kg", "2",
+        "--protocol", "step", "--controller", "ffpid", "--period-s", "4", "--cycles", "1",
+        "--lead-in-s", "1",
         "--ffpid-gains", "0.2", "1.5", "0", "--ffpid-hold-gains", "0", "0.05", "0",
         "--out", tmp_path, "--session-id", "s", "--quiet",
     )  # fmt: skip

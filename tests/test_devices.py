@@ -182,7 +182,7 @@ def test_set_current_is_reflected_in_the_telemetry_and_on_the_device_side(rig):
     assert rig.wait(
         lambda: not (t := rig.source.latest()).flags & p.Flag.ENABLED and t.current_a < 0.005
     )
-    assert rig.wire_current_a() == 0.0
+    assert rig.wait(lambda: rig.wire_current_a() == 0.0)  # and on the device side
 
 
 def test_out_of_range_setpoints_are_refused(rig):

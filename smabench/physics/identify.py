@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, minimize_scalar
 from threadpoolctl import threadpool_limits
 
 from smabench.physics.loop_models import (
@@ -131,6 +131,19 @@ def prepare_loop(temperature_c, position_mm) -> LoopData:
             f"stroke {stroke:.4g} mm)"
         )
     return LoopData(t, y, heating, deadband, stroke, centres, hc, cc)
+
+
+def major_loop_of(loop: LoopData, runs) -> LoopData | None:
+    """The samples of ``loop`` on its major branches (branches that start at a common point),
+    labelled by the history's runs; None when too few are left for a loop."""
+    on_major, heating = major_branch_samples(runs, loop.temperature_c.size)
+    t, y, h = loop.temperature_c[on_major], loop.position_mm[on_major], heating[on_major]
+    if min(int(h.sum()), int((~h).sum())) < MIN_BRANCH_POINTS:
+        return None
+    grid = np.linspace(t.min(), t.max(), 61)
+    hc = _binned_median(t[h], y[h], grid)
+    cc = _binned_median(t[~h], y[~h], grid)
+    return LoopData(t, y, h, loop.deadband_k, loop.stroke_mm, 0.5 * (grid[1:] + grid[:-1]), hc, cc)
 
 
 def _binned_median(t: np.ndarray, y: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -271,19 +284,7 @@ def fit_model1(loop: LoopData) -> Model1:
         cost = float(np.sum((model.evaluate(t, h) - y) ** 2))
         if cost < best_cost:
             best, best_cost = model, cost
-    runs = partial_loop_runs(loop, best)
-    if runs is None:
-        return best
-    # partial loops in the data: refit along the history (the paper's minor branches)
-    ts, ys, runs = _history_samples(loop, best, runs)
-    x0 = [*_cp_vector(best.cp), best.a1_mm, best.a21_mm, best.a22_mm, best.f12,
-          math.log(best.aspect_k_per_mm)]  # fmt: skip
-    x = _refine(lambda x: run_history(build(x), ts, loop.deadband_k, bool(h[0]), runs) - ys,
-                x0, lo, hi, "model 1 on partial loops", max_nfev=HISTORY_MAX_NFEV,
-                tol=1e-6)  # fmt: skip
-    model = build(x)
-    model.fitted_on_history = True
-    return model
+    return _on_major_branches(best, loop, fit_model1)
 
 
 def fit_model2(loop: LoopData) -> Model2:
@@ -331,17 +332,23 @@ def fit_model2(loop: LoopData) -> Model2:
             best, best_cost = model, cost
     model = best
     model.untuned_nrmse_percent = _nrmse(untuned.evaluate(t, h) - y, s)
+    return _on_major_branches(model, loop, fit_model2)
+
+
+def _on_major_branches(model, loop: LoopData, fit: Callable):
+    """When the data hold partial loops (:func:`partial_loop_runs`), ``fit`` again on the samples
+    of the major branches only (the paper's models have no minor-branch parameter: their minor
+    branches follow from the major loop by the adaptation rules)."""
+    if getattr(loop, "major_only", False):
+        return model
     runs = partial_loop_runs(loop, model)
     if runs is None:
         return model
-    # partial loops in the data: refit along the history (the paper's minor branches)
-    ts, ys, runs = _history_samples(loop, model, runs)
-    x0 = [*_cp_vector(model.cp), model.f, model.c11, model.c21, model.c22, model.g]
-    x = _refine(lambda x: run_history(build(x), ts, loop.deadband_k, bool(h[0]), runs) - ys,
-                x0, lo, hi, "model 2 on partial loops", max_nfev=HISTORY_MAX_NFEV,
-                tol=1e-6)  # fmt: skip
-    refit = build(x)
-    refit.untuned_nrmse_percent = model.untuned_nrmse_percent
+    major = major_loop_of(loop, runs)
+    if major is None or major.temperature_c.size < MAJOR_SHARE * loop.temperature_c.size:
+        return model  # the major loop is not well sampled: the fit on every sample stays
+    major.major_only = True
+    refit = fit(major)
     refit.fitted_on_history = True
     return refit
 
@@ -350,6 +357,24 @@ HISTORY_MAX_NFEV = 300
 """Evaluations of the refit along a history with partial loops (each one runs the history)."""
 PARTIAL_SHARE = 0.05
 """Share of the samples that must lie on minor branches for a refit along the history."""
+
+
+MAJOR_SHARE = 0.25
+"""Share of the samples on major branches for the major-loop law to be refitted on them alone."""
+THETA_BOUNDS = (-10.0, 60.0)
+"""Search range of Frank's θ (60: each grain's two switching temperatures all but locked)."""
+
+
+def major_branch_samples(runs, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(on a major branch, heating) for each of ``n`` samples from a history's branch runs: the
+    samples of branches that start at a common point, and every sample's branch direction."""
+    on_major = np.zeros(n, bool)
+    heating = np.zeros(n, bool)
+    for r in runs:
+        heating[r.i0 : r.i1] = r.heating
+        if r.start < 0:
+            on_major[r.i0 : r.i1] = True
+    return on_major, heating
 
 
 def partial_loop_runs(loop: LoopData, model) -> list | None:
@@ -425,18 +450,33 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
     runs = partial_loop_runs(loop, build(x))
     if runs is None:
         return build(x)
-    # partial loops in the data: refit along the history, the minor-branch law's θ included
+    # partial loops in the data. With a well-sampled major loop: the major-loop law again on the
+    # samples of its branches only, then the minor-branch law's θ along the whole history (a 1-D
+    # search). Without (cycles that never leave the model's transformation tails): every
+    # parameter along the history.
+    on_major, heating = major_branch_samples(runs, t.size)
+    well_sampled = major_loop_of(loop, runs) is not None and on_major.mean() >= MAJOR_SHARE
+    if well_sampled:
+        x = _refine(lambda x: build(x).evaluate(t[on_major], heating[on_major]) - y[on_major], x,
+                    lo, hi, "sigmoid model on the major branches")  # fmt: skip
+    ts, ys, runs = _history_samples(loop, build(x), runs)
 
-    def build_theta(x) -> SigmoidModel:
+    def build_theta(x, theta: float) -> SigmoidModel:
         m = build(x)
-        m.memory_theta = float(x[14])
+        m.memory_theta = float(theta)
         return m
 
-    ts, ys, runs = _history_samples(loop, build(x), runs)
-    x = _refine(lambda x: run_history(build_theta(x), ts, loop.deadband_k, bool(h[0]), runs) - ys,
-                [*x, 2.0], lo + [-10.0], hi + [60.0], "sigmoid model on partial loops",
-                max_nfev=HISTORY_MAX_NFEV, tol=1e-6)  # fmt: skip
-    model = build_theta(x)
+    def residual(x, theta: float) -> np.ndarray:
+        return run_history(build_theta(x, theta), ts, loop.deadband_k, bool(h[0]), runs) - ys
+
+    theta = minimize_scalar(lambda th: float(np.sum(residual(x, th) ** 2)), bounds=THETA_BOUNDS,
+                            method="bounded", options={"xatol": 0.05}).x  # fmt: skip
+    if not well_sampled:
+        x = _refine(lambda z: residual(z[:-1], z[-1]), [*x, theta], lo + [THETA_BOUNDS[0]],
+                    hi + [THETA_BOUNDS[1]], "sigmoid model along the history",
+                    max_nfev=HISTORY_MAX_NFEV, tol=1e-6)  # fmt: skip
+        x, theta = x[:-1], x[-1]
+    model = build_theta(x, theta)
     model.fitted_on_history = True
     return model
 

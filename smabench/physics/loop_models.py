@@ -450,7 +450,12 @@ def frank_copula(u, v, theta: float):
     v = np.clip(v, 0.0, 1.0)
     if abs(theta) < 1e-6:
         return u * v
-    return -np.log1p(np.expm1(-theta * u) * np.expm1(-theta * v) / np.expm1(-theta)) / theta
+    if theta < 0:
+        return -np.log1p(np.expm1(-theta * u) * np.expm1(-theta * v) / np.expm1(-theta)) / theta
+    # θ > 0 in a form without cancellation: min(u, v) minus a correction that vanishes as θ grows
+    lo, hi = np.minimum(u, v), np.maximum(u, v)
+    inner = 1.0 + np.exp(-theta * (hi - lo)) - np.exp(-theta * hi) - np.exp(-theta * (1.0 - lo))
+    return lo - (np.log(np.maximum(inner, 1e-300)) - np.log1p(-np.exp(-theta))) / theta
 
 
 @dataclass

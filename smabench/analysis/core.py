@@ -1135,8 +1135,10 @@ def parameter_flags(an: Analysis, model: str, params: dict[str, dict]) -> list[s
         if "value" not in pv:
             continue
         v, u = pv.get("value"), pv.get("uncertainty")
+        unit = pv.get("unit", "")
+        unit = "" if unit.startswith("1") else f" {unit.split(' (')[0]}"  # short: a name's unit
         if pv.get("at_bound"):
-            flags.append(f"{model}: {name} = {v:.4g} {pv.get('unit', '')} at its "
+            flags.append(f"{model}: {name} = {v:.4g}{unit} at its "
                          f"{'/'.join(pv['at_bound'])} bound in some fold (not identified)")
         if name in ("c_mid",) and params.get("hyst_k", {}).get("at_bound") == ["lower"]:
             continue

@@ -86,6 +86,8 @@ def estop_latency_s(qtbot, w: MainWindow, pressed_t: float) -> float:
     qtbot.waitUntil(lambda: w.last_estop is not None, timeout=10000)
     report = w.last_estop
     assert report["confirmed"], report
+    w.estop_split_ms = ((report["received_t"] - pressed_t) * 1e3,
+                        (report["output_off_t"] - report["received_t"]) * 1e3)  # fmt: skip
     return report["output_off_t"] - pressed_t
 
 
@@ -117,7 +119,8 @@ def test_estop_key_with_focus_in_a_field(qtbot, win, key):
     t = press_estop_key(qtbot, field, key)
     took = estop_latency_s(qtbot, win, t)
     print(f"\nE-STOP ({QtGui.QKeySequence(key).toString()}, focus in a field) → driver output "
-          f"off: {took * 1e3:.1f} ms")
+          f"off: {took * 1e3:.1f} ms (GUI → runtime {win.estop_split_ms[0]:.1f} ms, runtime → "
+          f"off {win.estop_split_ms[1]:.1f} ms)")
     assert took <= ESTOP_LIMIT_S
     end = wait_end(qtbot, win, 10000)
     assert end["status"] == "aborted" and end["reason"] == "e-stop"

@@ -108,6 +108,8 @@ def estop_latency_s(qtbot, w, pressed_t: float) -> float:
     qtbot.waitUntil(lambda: w.last_estop is not None, timeout=10000)
     report = w.last_estop
     assert report["confirmed"], report
+    w.estop_split_ms = ((report["received_t"] - pressed_t) * 1e3,
+                        (report["output_off_t"] - report["received_t"]) * 1e3)  # fmt: skip
     return report["output_off_t"] - pressed_t
 
 
@@ -196,7 +198,9 @@ def test_estop_key_stops_the_output_in_every_state(qtbot, win, tmp_path, where):
     pressed = time.monotonic()
     QTest.keyClick(target, Qt.Key.Key_Escape)
     took = estop_latency_s(qtbot, win, pressed)
-    print(f"\nE-STOP (Esc, {where}) → driver output off: {took * 1e3:.1f} ms")
+    print(f"\nE-STOP (Esc, {where}) → driver output off: {took * 1e3:.1f} ms"
+          f" (GUI → runtime {win.estop_split_ms[0]:.1f} ms, runtime → off "
+          f"{win.estop_split_ms[1]:.1f} ms)")
     assert took <= ESTOP_LIMIT_S, f"{where}: {took * 1e3:.0f} ms"
     end = wait_end(qtbot, win, 10000)
     assert end["status"] == "aborted" and end["reason"] == "e-stop"
@@ -214,7 +218,9 @@ def test_estop_button_by_mouse_beside_an_open_file_dialog(qtbot, win):
     qtbot.mousePress(win.estop_button, Qt.MouseButton.LeftButton)
     took = estop_latency_s(qtbot, win, pressed)
     qtbot.mouseRelease(win.estop_button, Qt.MouseButton.LeftButton)
-    print(f"\nE-STOP (mouse, file dialog open) → driver output off: {took * 1e3:.1f} ms")
+    print(f"\nE-STOP (mouse, file dialog open) → driver output off: {took * 1e3:.1f} ms"
+          f" (GUI → runtime {win.estop_split_ms[0]:.1f} ms, runtime → off "
+          f"{win.estop_split_ms[1]:.1f} ms)")
     assert took <= ESTOP_LIMIT_S
     assert win.state == State.ESTOPPED
 

@@ -8,8 +8,11 @@ Cycles are shown counting from 1 everywhere (the recorded ``cycle`` column count
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import json
 import logging
+import multiprocessing
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -19,6 +22,7 @@ from typing import Any
 import numpy as np
 from PySide6 import QtCore, QtWidgets
 
+from smabench.gui import words
 from smabench.gui.link import SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
 
@@ -30,17 +34,40 @@ def shown_cycle(index: float) -> int:
     return int(index) + 1
 
 
+WORKER_NICE = 10
+
+
+def _lower_priority() -> None:
+    """Worker process initializer: computations yield the CPU to the GUI and the bench."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(WORKER_NICE)
+
+
 class Jobs:
-    """Work off the GUI thread (file I/O, fits, exports); results handed back by :meth:`poll`
-    on the GUI thread, so callbacks may touch widgets."""
+    """Work off the GUI thread; results handed back by :meth:`poll` on the GUI thread, so
+    callbacks may touch widgets. File I/O runs on threads (:meth:`submit`); computations run in a
+    worker process at lower priority (:meth:`compute`), so a fit never holds the GUI's
+    interpreter lock while the operator reaches for the E-STOP."""
 
     def __init__(self, workers: int = 2) -> None:
         self.pool = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="gui-job")
+        self._procs: concurrent.futures.ProcessPoolExecutor | None = None
         self.pending: list[tuple[concurrent.futures.Future, Callable, Callable]] = []
 
     def submit(self, fn: Callable[[], Any], done: Callable[[Any], None],
                failed: Callable[[BaseException], None]) -> concurrent.futures.Future:  # fmt: skip
         fut = self.pool.submit(fn)
+        self.pending.append((fut, done, failed))
+        return fut
+
+    def compute(self, fn: Callable[..., Any], args: tuple, done: Callable[[Any], None],
+                failed: Callable[[BaseException], None]) -> concurrent.futures.Future:  # fmt: skip
+        """``fn(*args)`` in the worker process (``fn`` and ``args`` picklable)."""
+        if self._procs is None:  # spawned, not forked: the GUI process has threads
+            self._procs = concurrent.futures.ProcessPoolExecutor(
+                1, mp_context=multiprocessing.get_context("spawn"), initializer=_lower_priority
+            )
+        fut = self._procs.submit(fn, *args)
         self.pending.append((fut, done, failed))
         return fut
 
@@ -63,6 +90,10 @@ class Jobs:
 
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
+        if self._procs is not None:
+            for proc in list(getattr(self._procs, "_processes", {}).values()):
+                proc.terminate()  # a fit in progress is not waited for
+            self._procs.shutdown(wait=False, cancel_futures=True)
 
 
 @dataclass
@@ -206,3 +237,141 @@ def fit_session(folder: Path, model: str, cycle: int | None) -> dict[str, Any]:
     return {"text": "\n".join(lines), "temp": temp[ok], "model_mm": fit.predict(temp[ok]),
             "nrmse_percent": fit.nrmse_percent, "rmse_mm": fit.rmse_mm,
             "cycle": shown_cycle(chosen), "folder": str(folder)}  # fmt: skip
+
+
+class SessionsMixin:
+    """The Sessions tab's behaviour (a mixin of :class:`~smabench.gui.window.MainWindow`): list,
+    folder, replay, export and fit, all file work off the GUI thread."""
+
+    # ------------------------------------------------------------------ sessions
+    def refresh_sessions(self) -> None:
+        root = self.sessions_dir
+        self.sessions_label.setText(f"Sessions folder: {root.resolve()}")
+        self.jobs.submit(lambda: read_session_rows(root), self._fill_sessions,
+                         lambda exc: self.show_error(str(exc)))  # fmt: skip
+
+    def _fill_sessions(self, rows: list[SessionRow]) -> None:
+        keep = self.selected_session()
+        self.session_list.clear()
+        for r in rows:
+            item = QtWidgets.QTreeWidgetItem([
+                r.started, "–" if r.load_kg is None else f"{r.load_kg:g} kg", r.protocol,
+                r.status, r.folder.name])  # fmt: skip
+            item.setData(0, QtCore.Qt.ItemDataRole.UserRole, str(r.folder))
+            self.session_list.addTopLevelItem(item)
+            if keep is not None and r.folder == keep:
+                self.session_list.setCurrentItem(item)
+        for i in range(5):
+            self.session_list.resizeColumnToContents(i)
+        self.sessions_loaded = len(rows)
+
+    def selected_session(self) -> Path | None:
+        item = self.session_list.currentItem()
+        return Path(item.data(0, QtCore.Qt.ItemDataRole.UserRole)) if item else None
+
+    def open_session(self, folder: str | Path, after: Any = None) -> None:
+        """Replay a recorded session in the Replay tab (loaded off the GUI thread); then
+        ``after()``."""
+        from smabench.sessions import load_session
+
+        folder = Path(folder)
+        self.say(f"Opening {folder.name} …")
+
+        def done(s) -> None:
+            self.replay.show_session(folder, s, None)
+            self.tabs.setCurrentWidget(self.replay)
+            self.say(f"Replaying {folder.name} ({len(s)} samples) in the Replay tab.")
+            if after is not None:
+                after()
+
+        self.jobs.submit(lambda: load_session(folder), done,
+                         lambda exc: self.say(f"Cannot open {folder}: {words.plain(str(exc))}",
+                                              error=True))  # fmt: skip
+
+    def open_selected(self) -> None:
+        folder = self.selected_session()
+        if folder is None:
+            self.say("Choose a session in the list first.", error=True)
+            return
+        self.open_session(folder)
+
+    def _dialog_for(self, title: str, mode: str, start: str) -> QtWidgets.QFileDialog:
+        """A non-native, non-modal file dialog (the E-STOP button stays usable beside it)."""
+        dlg = QtWidgets.QFileDialog(self, title, start)
+        dlg.setOption(QtWidgets.QFileDialog.Option.DontUseNativeDialog, True)
+        dlg.setWindowModality(QtCore.Qt.WindowModality.NonModal)
+        if mode == "dir":
+            dlg.setFileMode(QtWidgets.QFileDialog.FileMode.Directory)
+            dlg.setOption(QtWidgets.QFileDialog.Option.ShowDirsOnly, True)
+        else:
+            dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptMode.AcceptSave)
+            dlg.setNameFilter("CSV (*.csv)")
+        self._dialog = dlg
+        return dlg
+
+    def choose_sessions_dir(self) -> None:
+        dlg = self._dialog_for("Sessions folder", "dir", str(self.sessions_dir))
+        dlg.fileSelected.connect(lambda path: self.set_sessions_dir(path))
+        dlg.show()
+
+    def set_sessions_dir(self, path: str | Path) -> None:
+        self.sessions_dir = Path(path)
+        self.refresh_sessions()
+
+    def open_folder_dialog(self) -> None:
+        dlg = self._dialog_for("Open a session folder", "dir", str(self.sessions_dir))
+        dlg.fileSelected.connect(lambda path: self.open_session(path))
+        dlg.show()
+
+    def export_session(self, folder: str | Path, out: str | Path) -> None:
+        """Write the session's samples as one CSV (off the GUI thread)."""
+        from smabench.sessions import export_csv, load_session
+
+        def done(n: int) -> None:
+            self.last_export_rows = n
+            self.say(f"{n} rows written to {out}.")
+
+        self.jobs.submit(lambda: export_csv(load_session(folder), out), done,
+                         lambda exc: self.say(f"Export failed: {words.plain(str(exc))}",
+                                              error=True))  # fmt: skip
+
+    def export_dialog(self) -> None:
+        folder = self.selected_session()
+        if folder is None:
+            self.say("Choose a session to export in the list first.", error=True)
+            return
+        dlg = self._dialog_for("Export CSV", "save", str(folder.with_suffix(".csv")))
+        dlg.fileSelected.connect(lambda out: self.export_session(folder, out))
+        dlg.show()
+
+    def fit_selected(self) -> None:
+        """Fit the chosen model to the selected session (off the GUI thread); the result is
+        drawn in the Replay tab, over that session."""
+        folder = self.selected_session()
+        if folder is None:
+            self.say("Choose a session to fit in the list first.", error=True)
+            return
+        if self.fit_cycle.error():
+            self.say(f"Not fitted: {self.fit_cycle.error()}.", error=True)
+            return
+        model, cycle = self.fit_model.currentText(), self.fit_cycle.value()
+        self.last_fit = None
+        self.say(f"Fitting the {model} model to {folder.name} …")
+
+        def done(fit: dict[str, Any]) -> None:
+            def show() -> None:
+                self.replay.show_fit(fit["text"], fit["temp"], fit["model_mm"])
+                self.tabs.setCurrentWidget(self.replay)
+                self.last_fit = fit
+                self.say(f"Fitted {model} to {folder.name}, cycle {fit['cycle']}: nrmse "
+                         f"{fit['nrmse_percent']:.2f} % of stroke.")  # fmt: skip
+
+            if self.replay.folder != folder:  # drawn over the session it was fitted to
+                self.open_session(folder, after=show)
+            else:
+                show()
+
+        self.jobs.compute(fit_session, (folder, model, cycle), done,
+                         lambda exc: self.say(f"Not fitted: {words.plain(str(exc))}",
+                                              error=True))  # fmt: skip
+

@@ -10,7 +10,9 @@ sends commands and draws what the runtime streams, from a 30 Hz timer. The E-STO
 Esc/F12/Ctrl+E anywhere, :mod:`smabench.gui.estop`) writes to the runtime's pipe first, before
 anything is drawn; the runtime turns the driver's output off from outside its loop. Fits,
 exports and file reading run off the GUI thread (:class:`~smabench.gui.sessions_view.Jobs`).
-The window's state is :class:`~smabench.gui.state.StateMachine`'s; controls follow it.
+The window's state is :class:`~smabench.gui.state.StateMachine`'s; controls follow it. The
+widgets are built by :class:`~smabench.gui.layout.WindowLayout`; the Sessions tab's behaviour is
+:class:`~smabench.gui.sessions_view.SessionsMixin`.
 """
 
 from __future__ import annotations
@@ -25,36 +27,28 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from smabench import settings as schema
 from smabench.gui import words
-from smabench.gui.estop import KEY_NAMES, EStopGuard
-from smabench.gui.fields import Field, NoWheelCombo, ValueField, label_for, make_field
+from smabench.gui.estop import EStopGuard
+from smabench.gui.fields import Field
+from smabench.gui.layout import MODES, WindowLayout
 from smabench.gui.link import RuntimeLink, SampleBuffer
-from smabench.gui.plots import LoopPlot, TimePlots
 from smabench.gui.sessions_view import (
     Jobs,
-    ReplayView,
-    SessionRow,
-    fit_session,
-    read_session_rows,
+    SessionsMixin,
     shown_cycle,
 )
 from smabench.gui.specs import (
-    CONNECTION,
-    FIT_CYCLE,
     GAIN_LAWS,
     OPEN_LOOP_CURRENT,
     mode_uses,
-    shown,
     stress_question,
 )
 from smabench.gui.state import IN_SESSION, NOT_CONNECTED, State, StateMachine, controls_for
-from smabench.settings import GAIN_COMPONENTS, GAIN_SETS, PROTOCOL_NAMES, Setting, SettingError
+from smabench.settings import GAIN_COMPONENTS, GAIN_SETS, SettingError
 
 log = logging.getLogger(__name__)
 
 FRAME_MS = 33
-MODES = (("open_loop", "Open loop"), ("pid", "PID"), ("ff", "FF"), ("ffpid", "FF+PID"))
 MODE_LABEL = dict(MODES)
-MODELS = ("1", "2", "sigmoid", "preisach")
 STATE_TEXT = {
     State.DISCONNECTED: "Not connected", State.CONNECTING: "Connecting …",
     State.IDLE: "Connected · idle", State.STARTING: "Starting …", State.RUNNING: "Running",
@@ -64,7 +58,7 @@ STATE_TEXT = {
 LOST_STATUSES = 2  # status lines in a row with the driver link down while idle = device lost
 
 
-class MainWindow(QtWidgets.QMainWindow):
+class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
     """Everything the operator needs at the bench."""
 
     session_ended = QtCore.Signal(dict)
@@ -104,349 +98,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.timer.start(FRAME_MS)
         self.refresh_sessions()
         self._apply_state()
-
-    # ------------------------------------------------------------------ layout
-    def _field(self, setting: Setting) -> Field:
-        w = make_field(setting)
-        self.fields[setting.key] = w
-        return w
-
-    def _build(self, mock_speed: float) -> None:
-        central = QtWidgets.QWidget()
-        outer = QtWidgets.QVBoxLayout(central)
-        outer.setContentsMargins(6, 6, 6, 6)
-        outer.setSpacing(4)
-        outer.addWidget(self._run_bar())
-        self.settings_tabs = QtWidgets.QTabWidget()
-        for title, panel in (("Experiment", self._experiment_panel()),
-                             ("Limits", self._limits_panel()),
-                             ("Controller", self._controller_panel()),
-                             ("Connection", self._connection_panel(mock_speed))):  # fmt: skip
-            scroll = QtWidgets.QScrollArea()
-            scroll.setWidget(panel)
-            scroll.setWidgetResizable(True)
-            scroll.setFrameShape(QtWidgets.QFrame.Shape.NoFrame)
-            self.settings_tabs.addTab(scroll, title)
-        self.settings_tabs.setMinimumWidth(360)
-        self.loop_plot = LoopPlot()
-        self.time_plots = TimePlots()
-        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
-        live.addWidget(self.loop_plot)
-        live.addWidget(self.time_plots)
-        live.setSizes([450, 450])
-        self.replay = ReplayView()
-        self.tabs = QtWidgets.QTabWidget()
-        self.tabs.addTab(live, "Live")
-        self.tabs.addTab(self._sessions_panel(), "Sessions")
-        self.tabs.addTab(self.replay, "Replay (recorded)")
-        split = QtWidgets.QSplitter()
-        split.addWidget(self.settings_tabs)
-        split.addWidget(self.tabs)
-        split.setStretchFactor(1, 1)
-        split.setSizes([400, 1000])
-        outer.addWidget(split, 1)
-        self.setCentralWidget(central)
-        self.health = QtWidgets.QLabel("not connected")
-        self.statusBar().addPermanentWidget(self.health)
-        self.resize(1400, 900)
-        self._show_setting_fields()
-        self._show_device_fields()
-
-    def _run_bar(self) -> QtWidgets.QWidget:
-        bar = QtWidgets.QFrame()
-        bar.setFrameShape(QtWidgets.QFrame.Shape.StyledPanel)
-        v = QtWidgets.QVBoxLayout(bar)
-        v.setContentsMargins(6, 6, 6, 6)
-        v.setSpacing(4)
-        row = QtWidgets.QHBoxLayout()
-        self.estop_button = QtWidgets.QPushButton(f"E-STOP\n{KEY_NAMES}")
-        self.estop_button.setMinimumSize(220, 64)
-        self.estop_button.setToolTip(f"Output off at once ({KEY_NAMES}, from anywhere)")
-        self.estop_button.setStyleSheet(
-            "QPushButton { background: #c62828; color: white; font-size: 20px; font-weight: bold;"
-            " border-radius: 8px; } QPushButton:pressed { background: #8e0000; }"
-        )
-        self.estop_button.pressed.connect(self.estop)  # on press, not on release
-        row.addWidget(self.estop_button)
-        self.state_label = QtWidgets.QLabel()
-        self.state_label.setMinimumWidth(150)
-        self.state_label.setStyleSheet("font-size: 15px; font-weight: bold;")
-        row.addWidget(self.state_label)
-        self.connect_button = QtWidgets.QPushButton("Connect")
-        self.connect_button.clicked.connect(self.toggle_connection)
-        self.start_button = QtWidgets.QPushButton("Start")
-        self.pause_button = QtWidgets.QPushButton("Pause")
-        self.stop_button = QtWidgets.QPushButton("Stop")
-        self.start_button.clicked.connect(self.start_experiment)
-        self.pause_button.clicked.connect(self.toggle_pause)
-        self.stop_button.clicked.connect(self.stop_experiment)
-        for b in (self.connect_button, self.start_button, self.pause_button, self.stop_button):
-            b.setMinimumSize(92, 44)
-            row.addWidget(b)
-        prog = QtWidgets.QVBoxLayout()
-        self.progress = QtWidgets.QProgressBar()
-        self.progress.setRange(0, 1000)
-        self.progress.setMinimumWidth(180)
-        self.times = QtWidgets.QLabel("elapsed –   remaining –")
-        prog.addWidget(self.progress)
-        prog.addWidget(self.times)
-        row.addLayout(prog, 1)
-        v.addLayout(row)
-        self.banner = QtWidgets.QFrame()
-        self.banner.setStyleSheet("QFrame { background: #c62828; } QLabel { color: white; "
-                                  "font-size: 15px; font-weight: bold; }")  # fmt: skip
-        bl = QtWidgets.QHBoxLayout(self.banner)
-        bl.setContentsMargins(8, 4, 8, 4)
-        self.banner_label = QtWidgets.QLabel()
-        self.banner_label.setWordWrap(True)
-        bl.addWidget(self.banner_label, 1)
-        self.ack_button = QtWidgets.QPushButton("Acknowledge")
-        self.ack_button.setMinimumHeight(32)
-        self.ack_button.clicked.connect(self.acknowledge_estop)
-        bl.addWidget(self.ack_button)
-        self.banner.hide()
-        v.addWidget(self.banner)
-        self.message = QtWidgets.QLabel("")
-        self.message.setWordWrap(True)
-        self.message.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
-        v.addWidget(self.message)
-        self.readout = QtWidgets.QLabel("readouts: not connected")
-        self.readout.setStyleSheet("color: #333;")
-        v.addWidget(self.readout)
-        return bar
-
-    def _form_panel(self) -> tuple[QtWidgets.QWidget, QtWidgets.QFormLayout]:
-        w = QtWidgets.QWidget()
-        form = QtWidgets.QFormLayout(w)
-        form.setFieldGrowthPolicy(QtWidgets.QFormLayout.FieldGrowthPolicy.AllNonFixedFieldsGrow)
-        return w, form
-
-    def _add_field(self, form: QtWidgets.QFormLayout, setting: Setting) -> Field:
-        w = self._field(setting)
-        if setting.kind == "bool":
-            form.addRow(w)
-        else:
-            form.addRow(label_for(setting), w)
-        return w
-
-    def _experiment_panel(self) -> QtWidgets.QWidget:
-        w, form = self._form_panel()
-        self.experiment_form = form
-        self.protocol = NoWheelCombo()
-        self.protocol.addItems(PROTOCOL_NAMES)
-        self.protocol.setToolTip(schema.get("protocol.name").tooltip)
-        self.protocol.currentTextChanged.connect(self._show_setting_fields)
-        for setting in shown("load_wire"):
-            self._add_field(form, setting)
-        self.load_field = self.fields["load_kg"]
-        form.addRow("protocol", self.protocol)
-        self.protocol_fields = [s.key for s in shown("protocol")]
-        for setting in shown("protocol"):
-            self._add_field(form, setting)
-        for setting in shown("loop"):
-            self._add_field(form, setting)
-        self.load_field.changed.connect(self._show_table_gains)
-        return w
-
-    def _limits_panel(self) -> QtWidgets.QWidget:
-        w, form = self._form_panel()
-        note = QtWidgets.QLabel("Checked every control tick; a session that crosses one stops "
-                                "with the output off.")  # fmt: skip
-        note.setWordWrap(True)
-        form.addRow(note)
-        for setting in shown("limits"):
-            self._add_field(form, setting)
-        return w
-
-    def _controller_panel(self) -> QtWidgets.QWidget:
-        w, form = self._form_panel()
-        self.controller_form = form
-        row = QtWidgets.QHBoxLayout()
-        self.mode_buttons: dict[str, QtWidgets.QRadioButton] = {}
-        group = QtWidgets.QButtonGroup(w)
-        for mode, label in MODES:
-            b = QtWidgets.QRadioButton(label)
-            group.addButton(b)
-            row.addWidget(b)
-            self.mode_buttons[mode] = b
-            b.clicked.connect(lambda _=False, m=mode: self.set_mode(m))
-            b.toggled.connect(self._show_setting_fields)
-        self.mode_buttons["open_loop"].setChecked(True)
-        form.addRow(row)
-        self.active_mode = QtWidgets.QLabel("active law: – (no session)")
-        self.active_mode.setStyleSheet("font-weight: bold;")
-        form.addRow(self.active_mode)
-        self._add_field(form, OPEN_LOOP_CURRENT)
-        self.controller_fields = [s.key for s in shown("controller")]
-        for setting in shown("controller"):
-            self._add_field(form, setting)
-        self.gain_boxes: dict[str, QtWidgets.QGroupBox] = {}
-        self.gain_table_boxes: dict[str, QtWidgets.QCheckBox] = {}
-        self.gain_apply: dict[str, QtWidgets.QPushButton] = {}
-        for law, gs in GAIN_SETS.items():
-            box = QtWidgets.QGroupBox(f"{gs.label} gains")
-            f = QtWidgets.QFormLayout(box)
-            table = QtWidgets.QCheckBox("per-load table (follows the load)")
-            table.setChecked(True)
-            table.toggled.connect(lambda on, law=law: self.use_gain_table(law, on))
-            self.gain_table_boxes[law] = table
-            f.addRow(table)
-            for key in gs.keys:
-                setting = next(s for s in shown("gains") if s.key == key)
-                fw = self._field(setting)
-                f.addRow(f"{key.rsplit('.', 1)[1]}" + (f" ({setting.unit})" if setting.unit
-                                                        else ""), fw)  # fmt: skip
-            apply = QtWidgets.QPushButton("Apply these gains")
-            apply.clicked.connect(lambda _=False, law=law: self.apply_gains(law))
-            self.gain_apply[law] = apply
-            f.addRow(apply)
-            self.gain_boxes[law] = box
-            form.addRow(box)
-        self.gain_note = QtWidgets.QLabel("Open loop has no gains: choose PID or FF+PID to see "
-                                          "theirs.")  # fmt: skip
-        self.gain_note.setWordWrap(True)
-        form.addRow(self.gain_note)
-        self.setpoint_label = QtWidgets.QLabel("setpoint –")
-        form.addRow(self.setpoint_label)
-        self._show_table_gains()
-        return w
-
-    def _connection_panel(self, mock_speed: float) -> QtWidgets.QWidget:
-        w, form = self._form_panel()
-        self.connection_form = form
-        self.use_mock = QtWidgets.QRadioButton("Built-in mock bench")
-        self.use_real = QtWidgets.QRadioButton("Real devices")
-        self.use_mock.setChecked(True)
-        self.use_mock.toggled.connect(self._show_device_fields)
-        form.addRow(self.use_mock)
-        form.addRow(self.use_real)
-        self.mock_speed = self._add_field(form, CONNECTION["mock_speed"])
-        self.mock_speed.set_value(mock_speed)
-        self.mock_effect = QtWidgets.QLineEdit()
-        self.mock_effect.setPlaceholderText("e.g. latent_heat=24000 (optional)")
-        form.addRow("plant effect", self.mock_effect)
-        self.serial_port = NoWheelCombo()
-        self.serial_port.setEditable(True)
-        refresh = QtWidgets.QPushButton("↻")
-        refresh.setToolTip("look for serial ports again")
-        refresh.setMaximumWidth(30)
-        refresh.clicked.connect(self.refresh_ports)
-        self.port_row = QtWidgets.QWidget()
-        pr = QtWidgets.QHBoxLayout(self.port_row)
-        pr.setContentsMargins(0, 0, 0, 0)
-        pr.addWidget(self.serial_port, 1)
-        pr.addWidget(refresh)
-        form.addRow("driver port", self.port_row)
-        self.sensor_kind = NoWheelCombo()
-        self.sensor_kind.addItems(["TCP", "RTU"])
-        self.sensor_kind.currentTextChanged.connect(self._show_device_fields)
-        form.addRow("sensor link", self.sensor_kind)
-        self.sensor_host = QtWidgets.QLineEdit("192.168.0.10")
-        form.addRow("TCP host", self.sensor_host)
-        self.sensor_tcp_port = self._add_field(form, CONNECTION["sensor_tcp_port"])
-        self.sensor_rtu_port = NoWheelCombo()
-        self.sensor_rtu_port.setEditable(True)
-        form.addRow("RTU port", self.sensor_rtu_port)
-        self.sensor_baud = NoWheelCombo()
-        self.sensor_baud.addItems(["9600", "19200", "38400", "57600", "115200"])
-        self.sensor_baud.setCurrentText("115200")
-        form.addRow("RTU baud", self.sensor_baud)
-        self.sensor_unit = self._add_field(form, CONNECTION["sensor_unit"])
-        self.sensor_map = NoWheelCombo()
-        from smabench.drivers.displacement import available_maps
-
-        self.sensor_map.addItems(available_maps())
-        self.sensor_map.setCurrentText("generic-rs485-laser")
-        form.addRow("register map", self.sensor_map)
-        self.refresh_ports()
-        return w
-
-    def _sessions_panel(self) -> QtWidgets.QWidget:
-        w = QtWidgets.QWidget()
-        v = QtWidgets.QVBoxLayout(w)
-        top = QtWidgets.QHBoxLayout()
-        self.sessions_label = QtWidgets.QLabel()
-        self.sessions_label.setTextInteractionFlags(
-            QtCore.Qt.TextInteractionFlag.TextSelectableByMouse
-        )
-        top.addWidget(self.sessions_label, 1)
-        for label, slot in (("Change folder…", self.choose_sessions_dir),
-                            ("Open a session folder…", self.open_folder_dialog),
-                            ("Refresh", self.refresh_sessions)):  # fmt: skip
-            b = QtWidgets.QPushButton(label)
-            b.clicked.connect(slot)
-            top.addWidget(b)
-        v.addLayout(top)
-        self.session_list = QtWidgets.QTreeWidget()
-        self.session_list.setHeaderLabels(["date", "load", "protocol", "status", "folder"])
-        self.session_list.setRootIsDecorated(False)
-        self.session_list.setAlternatingRowColors(True)
-        self.session_list.itemDoubleClicked.connect(lambda *_: self.open_selected())
-        v.addWidget(self.session_list, 1)
-        row = QtWidgets.QHBoxLayout()
-        for label, slot in (("Open (replay)", self.open_selected),
-                            ("Export CSV…", self.export_dialog)):  # fmt: skip
-            b = QtWidgets.QPushButton(label)
-            b.clicked.connect(slot)
-            row.addWidget(b)
-        row.addStretch(1)
-        row.addWidget(QtWidgets.QLabel("model"))
-        self.fit_model = NoWheelCombo()
-        self.fit_model.addItems(MODELS)
-        self.fit_model.setCurrentText("sigmoid")
-        row.addWidget(self.fit_model)
-        row.addWidget(QtWidgets.QLabel("cycle"))
-        self.fit_cycle = ValueField(FIT_CYCLE)
-        self.fit_cycle.setMaximumWidth(70)
-        row.addWidget(self.fit_cycle)
-        self.fit_button = QtWidgets.QPushButton("Fit selected session")
-        self.fit_button.clicked.connect(self.fit_selected)
-        row.addWidget(self.fit_button)
-        v.addLayout(row)
-        self.jobs_label = QtWidgets.QLabel("")
-        v.addWidget(self.jobs_label)
-        return w
-
-    # ------------------------------------------------------------------ field visibility
-    def _show_setting_fields(self, *_: Any) -> None:
-        """Only what the chosen protocol and control law use is on screen."""
-        if not hasattr(self, "gain_note") or not hasattr(self, "experiment_form"):
-            return  # still building
-        name = self.protocol.currentText()
-        mode = self.selected_mode()
-        live_controller = self.session_controller and self.state in IN_SESSION
-        closed = mode != "open_loop" or live_controller  # mid-run: the session's protocol
-        for key in self.protocol_fields:
-            setting = self.fields[key].setting
-            self.experiment_form.setRowVisible(self.fields[key], setting.uses(name, closed))
-        for key in self.controller_fields:
-            setting = self.fields[key].setting
-            self.controller_form.setRowVisible(self.fields[key],
-                                               closed and mode_uses(setting, mode))  # fmt: skip
-        self.controller_form.setRowVisible(self.fields[OPEN_LOOP_CURRENT.key], closed)
-        for law, box in self.gain_boxes.items():
-            uses = (law == "pid" and mode == "pid") or (law != "pid" and mode == "ffpid")
-            self.controller_form.setRowVisible(box, uses)
-        self.controller_form.setRowVisible(self.gain_note, mode in ("open_loop", "ff"))
-        self.gain_note.setText("Open loop has no gains: choose PID or FF+PID to see theirs."
-                               if mode == "open_loop" else
-                               "FF (feed-forward alone) has no feedback gains.")  # fmt: skip
-
-    def _show_device_fields(self, *_: Any) -> None:
-        mock = self.use_mock.isChecked()
-        tcp = self.sensor_kind.currentText() == "TCP"
-        f = self.connection_form
-        f.setRowVisible(self.mock_speed, mock)
-        f.setRowVisible(self.mock_effect, mock)
-        for wdg in (self.port_row, self.sensor_kind, self.sensor_unit, self.sensor_map):
-            f.setRowVisible(wdg, not mock)
-        for wdg in (self.sensor_host, self.sensor_tcp_port):
-            f.setRowVisible(wdg, not mock and tcp)
-        for wdg in (self.sensor_rtu_port, self.sensor_baud):
-            f.setRowVisible(wdg, not mock and not tcp)
-
-    def visible_fields(self) -> list[Field]:
-        return [f for f in self.fields.values() if f.isVisibleTo(self)]
 
     # ------------------------------------------------------------------ state
     def fire(self, event: str) -> State:
@@ -1051,138 +702,6 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def show_error(self, text: str) -> None:
         self.say(words.plain(text), error=True)
-
-    # ------------------------------------------------------------------ sessions
-    def refresh_sessions(self) -> None:
-        root = self.sessions_dir
-        self.sessions_label.setText(f"Sessions folder: {root.resolve()}")
-        self.jobs.submit(lambda: read_session_rows(root), self._fill_sessions,
-                         lambda exc: self.show_error(str(exc)))  # fmt: skip
-
-    def _fill_sessions(self, rows: list[SessionRow]) -> None:
-        keep = self.selected_session()
-        self.session_list.clear()
-        for r in rows:
-            item = QtWidgets.QTreeWidgetItem([
-                r.started, "–" if r.load_kg is None else f"{r.load_kg:g} kg", r.protocol,
-                r.status, r.folder.name])  # fmt: skip
-            item.setData(0, QtCore.Qt.ItemDataRole.UserRole, str(r.folder))
-            self.session_list.addTopLevelItem(item)
-            if keep is not None and r.folder == keep:
-                self.session_list.setCurrentItem(item)
-        for i in range(5):
-            self.session_list.resizeColumnToContents(i)
-        self.sessions_loaded = len(rows)
-
-    def selected_session(self) -> Path | None:
-        item = self.session_list.currentItem()
-        return Path(item.data(0, QtCore.Qt.ItemDataRole.UserRole)) if item else None
-
-    def open_session(self, folder: str | Path, after: Any = None) -> None:
-        """Replay a recorded session in the Replay tab (loaded off the GUI thread); then
-        ``after()``."""
-        from smabench.sessions import load_session
-
-        folder = Path(folder)
-        self.say(f"Opening {folder.name} …")
-
-        def done(s) -> None:
-            self.replay.show_session(folder, s, None)
-            self.tabs.setCurrentWidget(self.replay)
-            self.say(f"Replaying {folder.name} ({len(s)} samples) in the Replay tab.")
-            if after is not None:
-                after()
-
-        self.jobs.submit(lambda: load_session(folder), done,
-                         lambda exc: self.say(f"Cannot open {folder}: {words.plain(str(exc))}",
-                                              error=True))  # fmt: skip
-
-    def open_selected(self) -> None:
-        folder = self.selected_session()
-        if folder is None:
-            self.say("Choose a session in the list first.", error=True)
-            return
-        self.open_session(folder)
-
-    def _dialog_for(self, title: str, mode: str, start: str) -> QtWidgets.QFileDialog:
-        """A non-native, non-modal file dialog (the E-STOP button stays usable beside it)."""
-        dlg = QtWidgets.QFileDialog(self, title, start)
-        dlg.setOption(QtWidgets.QFileDialog.Option.DontUseNativeDialog, True)
-        dlg.setWindowModality(QtCore.Qt.WindowModality.NonModal)
-        if mode == "dir":
-            dlg.setFileMode(QtWidgets.QFileDialog.FileMode.Directory)
-            dlg.setOption(QtWidgets.QFileDialog.Option.ShowDirsOnly, True)
-        else:
-            dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptMode.AcceptSave)
-            dlg.setNameFilter("CSV (*.csv)")
-        self._dialog = dlg
-        return dlg
-
-    def choose_sessions_dir(self) -> None:
-        dlg = self._dialog_for("Sessions folder", "dir", str(self.sessions_dir))
-        dlg.fileSelected.connect(lambda path: self.set_sessions_dir(path))
-        dlg.show()
-
-    def set_sessions_dir(self, path: str | Path) -> None:
-        self.sessions_dir = Path(path)
-        self.refresh_sessions()
-
-    def open_folder_dialog(self) -> None:
-        dlg = self._dialog_for("Open a session folder", "dir", str(self.sessions_dir))
-        dlg.fileSelected.connect(lambda path: self.open_session(path))
-        dlg.show()
-
-    def export_session(self, folder: str | Path, out: str | Path) -> None:
-        """Write the session's samples as one CSV (off the GUI thread)."""
-        from smabench.sessions import export_csv, load_session
-
-        def done(n: int) -> None:
-            self.last_export_rows = n
-            self.say(f"{n} rows written to {out}.")
-
-        self.jobs.submit(lambda: export_csv(load_session(folder), out), done,
-                         lambda exc: self.say(f"Export failed: {words.plain(str(exc))}",
-                                              error=True))  # fmt: skip
-
-    def export_dialog(self) -> None:
-        folder = self.selected_session()
-        if folder is None:
-            self.say("Choose a session to export in the list first.", error=True)
-            return
-        dlg = self._dialog_for("Export CSV", "save", str(folder.with_suffix(".csv")))
-        dlg.fileSelected.connect(lambda out: self.export_session(folder, out))
-        dlg.show()
-
-    def fit_selected(self) -> None:
-        """Fit the chosen model to the selected session (off the GUI thread); the result is
-        drawn in the Replay tab, over that session."""
-        folder = self.selected_session()
-        if folder is None:
-            self.say("Choose a session to fit in the list first.", error=True)
-            return
-        if self.fit_cycle.error():
-            self.say(f"Not fitted: {self.fit_cycle.error()}.", error=True)
-            return
-        model, cycle = self.fit_model.currentText(), self.fit_cycle.value()
-        self.last_fit = None
-        self.say(f"Fitting the {model} model to {folder.name} …")
-
-        def done(fit: dict[str, Any]) -> None:
-            def show() -> None:
-                self.replay.show_fit(fit["text"], fit["temp"], fit["model_mm"])
-                self.tabs.setCurrentWidget(self.replay)
-                self.last_fit = fit
-                self.say(f"Fitted {model} to {folder.name}, cycle {fit['cycle']}: nrmse "
-                         f"{fit['nrmse_percent']:.2f} % of stroke.")  # fmt: skip
-
-            if self.replay.folder != folder:  # drawn over the session it was fitted to
-                self.open_session(folder, after=show)
-            else:
-                show()
-
-        self.jobs.submit(lambda: fit_session(folder, model, cycle), done,
-                         lambda exc: self.say(f"Not fitted: {words.plain(str(exc))}",
-                                              error=True))  # fmt: skip
 
     # ------------------------------------------------------------------ closing
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802 (Qt name)

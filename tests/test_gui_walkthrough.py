@@ -99,6 +99,13 @@ def start_heating(qtbot, w) -> None:
     # running, or stopped trying (refused, or the connection failed): then say what it said
     qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
         w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
+    if w.state == State.ERROR and "did not answer" in w.message.text():
+        # the mock bench did not answer the handshake in time (seen at load average 12 on two
+        # cores); an operator presses Start again, so does this test, once
+        print(f"\nretrying after: {w.message.text()}")
+        qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
+            w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
     assert w.state == State.RUNNING, (w.state, w.message.text(), w.last_end, w.sm.history[-4:])
     qtbot.waitUntil(lambda: (w.status.get("readout", {}).get("current_a") or 0) > 0.5,
                     timeout=30000)  # fmt: skip

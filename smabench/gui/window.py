@@ -618,7 +618,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
 
     def _on_end(self, end: dict[str, Any]) -> None:
         if self.state == State.CONNECTING:  # the runtime could not open the devices
-            self.last_error = words.plain(end.get("reason", ""))
+            self.last_error = words.plain_connect(end.get("reason", ""))
             return
         self.last_end = end
         self._paused_at = None
@@ -659,7 +659,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
 
     def _on_runtime_gone(self, payload: dict[str, Any]) -> None:
         if self.state == State.CONNECTING:
-            reason = self.last_error or words.plain(payload.get("reason", ""))
+            reason = self.last_error or words.plain_connect(payload.get("reason", ""))
             self.link = None
             self.fire("connect_failed")
             self.say(f"Could not connect: {reason}", error=True)

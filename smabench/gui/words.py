@@ -105,3 +105,16 @@ def device_lost(reason: str) -> bool:
     """Whether a session's end reason means a device is gone (the link must be reopened)."""
     return bool(re.search(r"telemetry lost|sensor lost|link lost|LinkError|LinkTimeout|"
                           r"SerialException|could not open port", str(reason), re.IGNORECASE))
+
+
+NO_ANSWER_AT_CONNECT = (
+    "The current driver did not answer: check the port, the cable and the driver's power, then "
+    "press Connect again."
+)
+
+
+def plain_connect(text: str) -> str:
+    """Words for why a connection failed (nothing was running, so nothing was aborted)."""
+    if device_lost(text) or re.search(r"did not answer|no answer|handshake", str(text), re.I):
+        return NO_ANSWER_AT_CONNECT
+    return plain(text)

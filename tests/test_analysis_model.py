@@ -81,3 +81,50 @@ def test_sensor_lag_and_dead_time_delay_the_reading():
     x = np.sin(np.linspace(0.0, 6.0, 200))
     t = np.linspace(0.0, 2.0, 200)
     np.testing.assert_allclose(dead_time(x, t, t[5])[5:], x[:-5], atol=1e-12)
+
+
+def test_tanaka_shape_starts_sharp_and_ends_in_a_tail():
+    """shape −1: Tanaka's exponential law, ξ = exp(−a(T − T0)) above T0 on heating with the
+    cosine's centre and mid slope (a = π/w, T0 = centre − ln2/a); flat below T0."""
+    temp = np.linspace(40.0, 110.0, 701)
+    _, xi = wire_state(thermo_grid(temp), dict(P, h_shape=-1.0))
+    a = math.pi / 10.0
+    t0 = 70.0 - math.log(2.0) / a
+    for t in (t0 - 1.0, 70.0, 75.0, 85.0):
+        k = int(np.argmin(np.abs(temp - t)))
+        want = 1.0 if temp[k] <= t0 else math.exp(-a * (temp[k] - t0))
+        assert xi[k] == pytest.approx(want, abs=1e-9)
+    assert xi[np.argmin(np.abs(temp - 85.0))] > 1e-3  # the tail reaches past the window
+
+
+def test_loop_direction_is_built_in():
+    """The cooling centre is h_mid − hyst_k (hyst_k ≥ 0 by its bounds): never above heating."""
+    from smabench.analysis.model import Temps
+
+    tt = Temps(dict(P, hyst_k=20.0, shrink_k_per_mpa=0.1, sigma_ref=0.0), 400.0)
+    assert 0.5 * (tt.as_c + tt.af_c) > 0.5 * (tt.mf_c + tt.ms_c)
+
+
+@pytest.mark.parametrize(("q", "n0"), [(0.0, 5.0), (1.0, 2.0), (2.0, 3.0)])
+def test_residual_strain_family(q, n0):
+    """Rate per cycle r/(1 + N/n0)^q: its derivative, numerically, at several N."""
+    from smabench.analysis.model import residual_strain
+
+    n = np.linspace(0.0, 30.0, 30001)
+    eps = residual_strain(n, 1e-3, n0, q)
+    rate = np.gradient(eps, n)
+    for k in (0, 5000, 25000):
+        assert rate[k] == pytest.approx(1e-3 / (1.0 + n[k] / n0) ** q, rel=1e-3)
+
+
+def test_registry_declares_every_candidate_once():
+    from smabench.analysis.candidates import BASELINE, CP_J_KGK, PARAMS, REGISTRY
+    from smabench.physics.wire import PAPER_WIRE
+
+    names = [p.name for p in BASELINE] + [p.name for c in REGISTRY.values() for p in c.params]
+    assert len(names) == len(set(names)) == len(PARAMS)
+    for c in REGISTRY.values():
+        assert c.text and c.headline and c.params
+        for p in c.params:
+            assert p.lo <= p.start <= p.hi and p.scale > 0 and p.unit
+    assert PAPER_WIRE.cp_j_kgk == CP_J_KGK

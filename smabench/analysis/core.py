@@ -662,6 +662,10 @@ def paired_greater(a: np.ndarray, b: np.ndarray, tie_mm: float = 0.0) -> float:
     return min(1.0, 2.0 * min(wilcoxon_greater(a, b), ttest_log_greater(a, b)))
 
 
+HEAT_PAIR = {"latent_heat", "phase_resistance"}
+"""Two heat-balance causes that the cooling branches tell apart (no current, no I²R)."""
+
+
 def unit_gain(base: np.ndarray, ext: np.ndarray, tie_mm: float = 0.0) -> float:
     """Typical held-out gain: 1 − the median over the units of extended/baseline RMSE (units
     where both stay below ``tie_mm`` left out). Robust where the pooled RMSE is not: one
@@ -681,6 +685,7 @@ def verdict(
     noise_mm: float,
     stroke_mm: float,
     ruled_out: dict[str, str] | None = None,
+    cooling: np.ndarray | None = None,
 ) -> dict:
     """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs.
 
@@ -726,6 +731,20 @@ def verdict(
             ratio = 1.0 / max(1.0 - unit_gain(cand_units[runner], cand_units[best], tie), 1e-9)
             p_sep = paired_greater(cand_units[runner], cand_units[best], tie)
             rows[best]["p_vs_runner_up"] = p_sep
+            pair = {best, runner}
+            if (ratio < SEPARATION and p_sep >= ALPHA_SEPARATION and cooling is not None
+                    and pair == HEAT_PAIR and cooling.sum() >= 4):
+                # current off, the resistance heats nothing: only latent heat changes how the
+                # wire cools, so the cooling branches decide between the two
+                for a, b in ((best, runner), (runner, best)):
+                    p_cool = paired_greater(cand_units[b][cooling], cand_units[a][cooling], tie)
+                    if p_cool < ALPHA_SEPARATION:
+                        best, runner, p_sep, ratio = a, b, p_cool, math.inf
+                        cause = best
+                        rows[best]["p_vs_runner_up_cooling"] = p_cool
+                        reason = (f"{best}: gain {rows[best]['gain']:.1%}; told apart from "
+                                  f"{runner} on the cooling branches (p = {p_cool:.2g})")
+                        break
             if ratio < SEPARATION and p_sep >= ALPHA_SEPARATION:
                 cause = "unexplained"
                 reason = (
@@ -873,9 +892,11 @@ def analyse(
         for model in models:
             evaluate(model)
         ruled_out = _evidence(prob, fits, preds)
+        cooling = np.array([branch_ids(by_name[name])[ii[0]] % 2 == 1 for name, _f, ii in units],
+                           dtype=bool)  # fmt: skip
         v = verdict(
             unit_rmse["baseline"], {c: unit_rmse[c] for c in prob.candidates}, rmse["baseline"],
-            {c: rmse[c] for c in prob.candidates}, noise, stroke, ruled_out,
+            {c: rmse[c] for c in prob.candidates}, noise, stroke, ruled_out, cooling,
         )  # fmt: skip
         v["causes"] = []
         if v["cause"] in REGISTRY:

@@ -4,7 +4,11 @@ Steps, as in Shibly & Söffker: split the samples into heating and cooling branc
 common points where the branches diverge and meet again; rotate (model 1) or not (model 2); read
 the crossing point of the heating branch and the amplitudes from the data; then refine with
 scipy's ``least_squares`` starting from those values. Our :class:`SigmoidModel` and the
-Preisach peer are fitted to the same samples.
+Preisach peer are fitted to the same samples. Data with partial loops (first-order reversal
+curves, inner loops: :func:`partial_loop_runs`) are split into branch runs by the reversal
+memory; the major-loop law is fitted on the major branches' samples and our model's minor-branch
+law (``memory_theta``) along the whole history. The geometry follows the data's orientation
+(:func:`_orientation`): fitting −y gives the mirror image of the model of y.
 
 Errors reported for every fit:
 
@@ -380,8 +384,12 @@ def major_branch_samples(runs, n: int) -> tuple[np.ndarray, np.ndarray]:
 def partial_loop_runs(loop: LoopData, model) -> list | None:
     """The branch runs of the data's history (:func:`~smabench.physics.memory.branch_runs`)
     when at least :data:`PARTIAL_SHARE` of the samples lie on minor branches (branches that
-    start at a reversal inside the loop), else None: a major loop fit is all there is to do."""
-    cp = model.common_points() if hasattr(model, "common_points") else model.cp
+    start at a reversal inside the loop), else None: a major loop fit is all there is to do.
+    ``model``: a loop model, or :class:`CommonPoints` (e.g. the data's own)."""
+    if isinstance(model, CommonPoints):
+        cp = model
+    else:
+        cp = model.common_points() if hasattr(model, "common_points") else model.cp
     t = loop.temperature_c
     runs = branch_runs(t, cp.t1_c, cp.t2_c, loop.deadband_k, bool(loop.heating[0]))
     minor = sum(r.i1 - r.i0 for r in runs if r.start >= 0 and r.i1 - r.i0 >= 3)
@@ -445,7 +453,10 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
             FractionBranch(*map(float, x[4:9])), FractionBranch(*map(float, x[9:14])), t_ref,
         )  # fmt: skip
 
-    k = int(math.ceil(t.size / MAJOR_FIT_SAMPLES))  # the major-loop law: every k-th sample will do
+    # the major-loop law: every k-th sample will do (a start only when the data hold partial
+    # loops, by the data's own common points)
+    partial = partial_loop_runs(loop, find_common_points(loop)) is not None
+    k = int(math.ceil(t.size / (HISTORY_SAMPLES if partial else MAJOR_FIT_SAMPLES)))
     x = _refine(lambda x: build(x).evaluate(t[::k], h[::k]) - y[::k], x0, lo, hi, "sigmoid model")
     runs = partial_loop_runs(loop, build(x))
     if runs is None:
@@ -457,8 +468,10 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
     on_major, heating = major_branch_samples(runs, t.size)
     well_sampled = major_loop_of(loop, runs) is not None and on_major.mean() >= MAJOR_SHARE
     if well_sampled:
-        x = _refine(lambda x: build(x).evaluate(t[on_major], heating[on_major]) - y[on_major], x,
-                    lo, hi, "sigmoid model on the major branches")  # fmt: skip
+        sel = np.nonzero(on_major)[0]
+        sel = sel[:: int(math.ceil(sel.size / HISTORY_SAMPLES))]
+        x = _refine(lambda x: build(x).evaluate(t[sel], heating[sel]) - y[sel], x, lo, hi,
+                    "sigmoid model on the major branches")  # fmt: skip
     ts, ys, runs = _history_samples(loop, build(x), runs)
 
     def build_theta(x, theta: float) -> SigmoidModel:

@@ -18,10 +18,11 @@ It keeps the closed form and the online speed and follows the sharp transitions 
 
 Every model has a vectorised major-loop form ``evaluate(T, heating)`` and a scalar ``branch``
 form used by :class:`LoopStepper`, the online stepper that tracks the branch direction and the
-reversal points. Its memory implements the paper's adaptation rules: an incomplete cycle
-(reheated before it cooled) moves the first common point to the reversal point; an inner loop
-moves both common points (the branch heads for the previous reversal point, and a loop is wiped
-out when the temperature passes it, so inner loops close where they started).
+reversal points, and a vectorised ``branch_array`` that :func:`run_history` evaluates run by
+run. Their memory (:mod:`smabench.physics.memory`) implements the paper's adaptation rules: an
+incomplete cycle (reheated before it cooled) moves the first common point to the reversal point;
+an inner loop moves both common points (the branch heads for the previous reversal point, and a
+loop is wiped out when the temperature passes it, so inner loops close where they started).
 
 All functions are pure numpy; temperatures in °C, lengths/positions in mm.
 """
@@ -123,7 +124,10 @@ class Model1:
     T11 = T2 − L to T2 (L = diagonal length). Cooling: ``yr = Y2 + a1·sin(π(Tr−T11)/L)``.
     Heating: ``Y2 + a21·sin(π(Tr−T11)/(T12−T11))`` up to T12 = T11 + f12·L, then
     ``Y2 + a22·sin(π(Tr−T12)/(T2−T12))``. Amplitudes in mm (a1 < 0, a21 > 0, a22 < 0 for a wire
-    whose heating branch lies above the cooling branch).
+    whose heating branch lies above the cooling branch, all signs flipped when it lies below:
+    the rotation is mirror-symmetric, so the model of −y is the mirror image of the model of y).
+    Minor branches (:meth:`branch`) use the geometry of their own start and target points with
+    the amplitudes scaled by the sub-loop's share of the major stroke (:meth:`sub_scale`).
 
     The rotation needs a common scale for both axes: lengths are multiplied by
     ``aspect_k_per_mm`` (K per mm) before rotating. The paper rotates in its plot's units; we fit

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from smabench import settings as schema
 from smabench.gui.estop import KEY_NAMES
@@ -68,6 +68,11 @@ class WindowLayout:
         self.health = QtWidgets.QLabel("not connected")
         self.statusBar().addPermanentWidget(self.health)
         self.resize(1400, 900)
+        screen = QtGui.QGuiApplication.primaryScreen()
+        if screen is not None:  # never larger than the screen (run controls must be in view)
+            avail = screen.availableGeometry()
+            if avail.width() < 1400 or avail.height() < 900:
+                self.resize(min(1400, avail.width()), min(900, avail.height()))
         self._show_setting_fields()
         self._show_device_fields()
 

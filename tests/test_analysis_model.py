@@ -128,3 +128,28 @@ def test_registry_declares_every_candidate_once():
         for p in c.params:
             assert p.lo <= p.start <= p.hi and p.scale > 0 and p.unit
     assert PAPER_WIRE.cp_j_kgk == CP_J_KGK
+
+
+def _units(rng, heat: float, cool: float, n: int = 24) -> np.ndarray:
+    out = np.where(np.arange(n) % 2 == 1, cool, heat)
+    return out * np.exp(0.05 * rng.standard_normal(n))
+
+
+def test_verdict_tells_heat_causes_apart_on_cooling_and_by_v_over_i():
+    """Latent heat and phase resistance both cut the error; overall they cannot be told apart,
+    on the cooling branches (odd units) only latent heat helps: it is named. With V/I ruling
+    phase resistance out, latent heat is named without the contest."""
+    from smabench.analysis.core import verdict
+
+    rng = np.random.default_rng(0)
+    base = _units(rng, 1.0, 1.0)
+    cand = {"latent_heat": _units(rng, 0.40, 0.25), "phase_resistance": _units(rng, 0.25, 0.45)}
+    rmse = {c: float(np.sqrt(np.mean(u**2))) for c, u in cand.items()}
+    cooling = np.arange(24) % 2 == 1
+    args = (base, cand, 1.0, rmse, 0.01, 10.0)
+    assert verdict(*args)["cause"] == "unexplained"
+    v = verdict(*args, cooling=cooling)
+    assert v["cause"] == "latent_heat", v["reason"]
+    v = verdict(*args, ruled_out={"phase_resistance": "flat V/I"})
+    assert v["cause"] == "latent_heat"
+    assert not v["rows"]["phase_resistance"]["significant"]

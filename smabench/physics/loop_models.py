@@ -450,6 +450,8 @@ class FractionBranch:
 def frank_copula(u, v, theta: float):
     """Frank's copula C(u, v) (u, v in [0, 1]): θ = 0 independence (u·v), θ → ∞ the upper
     bound min(u, v), θ < 0 towards the lower bound; scalars or arrays."""
+    if isinstance(u, float) and isinstance(v, float):
+        return _frank_scalar(u, v, theta)
     u = np.clip(u, 0.0, 1.0)
     v = np.clip(v, 0.0, 1.0)
     if abs(theta) < 1e-6:
@@ -460,6 +462,20 @@ def frank_copula(u, v, theta: float):
     lo, hi = np.minimum(u, v), np.maximum(u, v)
     inner = 1.0 + np.exp(-theta * (hi - lo)) - np.exp(-theta * hi) - np.exp(-theta * (1.0 - lo))
     return lo - (np.log(np.maximum(inner, 1e-300)) - np.log1p(-np.exp(-theta))) / theta
+
+
+def _frank_scalar(u: float, v: float, theta: float) -> float:
+    """:func:`frank_copula` for two floats (the online stepper's speed)."""
+    u, v = min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)
+    if abs(theta) < 1e-6:
+        return u * v
+    if theta < 0:
+        e = math.expm1
+        return -math.log1p(e(-theta * u) * e(-theta * v) / e(-theta)) / theta
+    lo, hi = min(u, v), max(u, v)
+    x = math.exp
+    inner = 1.0 + x(-theta * (hi - lo)) - x(-theta * hi) - x(-theta * (1.0 - lo))
+    return lo - (math.log(max(inner, 1e-300)) - math.log1p(-math.exp(-theta))) / theta
 
 
 @dataclass
@@ -523,9 +539,13 @@ class SigmoidModel:
                 g, gs, ge = (u - frank_copula(u, xs, th) for u in (g, gs, ge))
             else:
                 g, gs, ge = (frank_copula(xs, v, th) for v in (g, gs, ge))
+        lo, hi = min(xs, xe), max(xs, xe)
+        if isinstance(g, float):
+            return xs if abs(ge - gs) < 1e-12 else min(max(xs + (xe - xs) * (g - gs) / (ge - gs),
+                                                           lo), hi)  # fmt: skip
         if abs(ge - gs) < 1e-12:
             return xs + 0.0 * g
-        return np.clip(xs + (xe - xs) * (g - gs) / (ge - gs), min(xs, xe), max(xs, xe))
+        return np.clip(xs + (xe - xs) * (g - gs) / (ge - gs), lo, hi)
 
     def branch(self, t: float, heating: bool, start: Point, target: Point) -> float:
         """One sample on a (possibly minor) branch from ``start`` towards ``target``."""

@@ -356,7 +356,8 @@ class Model2:
         l1 = t2 - t1
         if l1 <= 1e-9:
             return start[1]
-        a = self.sub_amplitude(start, target)
+        major = abs(cp.y2_mm - cp.y1_mm)  # sub_amplitude, inline for the stepper's speed
+        a = self.amplitude_mm * (min(abs(y2 - y1) / major, 1.0) if major > 1e-12 else 1.0)
         u = min(max((t - t1) / l1, 0.0), 1.0)
         y = y1 + (y2 - y1) * u
         if not heating:

@@ -244,3 +244,16 @@ def test_messages_are_plain_words(raw, want):
     assert want in text, text
     for bad in ("{", "--", "Error:", "Exception", "Errno", "(load_kg)"):
         assert bad not in text, text
+
+
+@pytest.mark.slow
+def test_device_lost_while_idle_is_noticed(qtbot, win):
+    qtbot.mouseClick(win.connect_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: win.state in (State.IDLE, State.ERROR), timeout=60000)
+    assert win.state == State.IDLE, win.message.text()
+    qtbot.waitUntil(lambda: win.status.get("readout", {}).get("position_mm") is not None,
+                    timeout=10000)  # fmt: skip
+    os.kill(win.link.ports["mock_pid"], signal.SIGKILL)
+    qtbot.waitUntil(lambda: win.state == State.ERROR, timeout=15000)
+    assert win.connect_button.text() == "Connect" and win.link is None
+    assert "stopped answering" in win.message.text()

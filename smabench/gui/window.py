@@ -589,7 +589,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         if self.state == State.IDLE:
             self._link_down = 0 if drv_ok else self._link_down + 1
             if self._link_down >= LOST_STATUSES:
-                self._lose(words.LOST_DRIVER)
+                self._lose(words.LOST_DRIVER_IDLE)
                 return
         if "progress" in st and st.get("running") and self.state in (State.RUNNING,
                                                                       State.PAUSED):

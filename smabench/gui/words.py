@@ -22,6 +22,10 @@ LOST_DRIVER = (
     "The current driver stopped answering (cable, USB or power?). Its output turns itself off; "
     "the session was closed as aborted."
 )
+LOST_DRIVER_IDLE = (
+    "The current driver stopped answering (cable, USB or power?). Its output turns itself off; "
+    "press Connect when it is back."
+)
 LOST_SENSOR = (
     "The displacement sensor stopped answering (cable, power or network?). The output was turned "
     "off and the session closed as aborted."

@@ -119,6 +119,7 @@ def _rms_after_lead_in(c, load, effects=None):
     return float(np.sqrt(np.mean((tr.position_mm[m] - tr.setpoint_mm[m]) ** 2)))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effects", [None, LATENT], ids=["nominal", "latent-heat"])
 def test_ffpid_halves_the_pid_error_on_a_slow_sine_in_the_offline_loop(effects):
     """The issue's target on the 20 s sine, also with latent heat in the plant (which the
@@ -133,6 +134,7 @@ def test_kinetic_lag_is_identified_per_branch():
     assert 0.02 <= heating_s <= 0.08 and 0.3 <= cooling_s <= 0.6
 
 
+@pytest.mark.slow
 def test_observer_follows_the_wire_temperature_that_latent_heat_moves():
     """With latent heat in the plant the heat balance alone is off by several kelvin; the
     observer, fed the position through the loop model, follows the real temperature."""
@@ -155,6 +157,7 @@ def test_observer_estimates_no_heat_input_on_the_nominal_plant():
     assert np.mean(np.abs(heat[800:])) < 0.02  # W; the latent-heat sink peaks near 0.1 W
 
 
+@pytest.mark.slow
 def test_observer_gate_stays_shut_on_the_nominal_plant_and_opens_with_latent_heat():
     """The observer corrects only when the open-loop model (loop model at the heat balance's
     temperature) is measurably wrong: not on the plant the model was identified on."""
@@ -215,6 +218,7 @@ def test_live_gain_changes_for_both_ffpid_sets_in_one_tick_are_both_applied():
         c.set_gains(0.1, 0.1, 0.0, law="ff")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("load, ratio", [(1.0, 0.9), (2.0, 0.9), (4.0, 1.0)])
 def test_ffpid_is_no_worse_than_pid_on_steps_in_the_offline_loop(load, ratio):
     """The issue's step target (≤ 1): the feed-forward lands the step, the hold gains only trim.
@@ -244,6 +248,7 @@ def test_amplitude_refit_outside_its_range_is_not_used():
             assert inv.refits == [] and inv.scale[True] == 1.0
 
 
+@pytest.mark.slow
 def test_adaptation_moves_the_first_common_point_to_the_wire_reversal():
     c = make("ffpid")
     run_closed_loop(c, 2.0, 60.0, dt_s=0.02)
@@ -383,6 +388,7 @@ def test_bench_control_offline_case_settles_every_step_edge():
     assert step["samples"] == round(20.0 / 0.0125) + round(8.0 / 0.0125) + 1
 
 
+@pytest.mark.slow
 def test_bench_control_smoke_on_the_mock(tmp_path):
     from smabench.bench.control_bench import Case, format_table, run_case
 
@@ -396,6 +402,7 @@ def test_bench_control_smoke_on_the_mock(tmp_path):
     assert "RMS mm" in text and "sine 10 s" in text
 
 
+@pytest.mark.slow
 def test_run_cli_closed_loop_with_switch(run_cli, tmp_path):
     proc = run_cli(
         "run", "--mock", "--mock-speed", "4", "--rate-hz", "100", "--load-kg", "2",
@@ -417,6 +424,7 @@ def test_run_cli_closed_loop_with_switch(run_cli, tmp_path):
     assert MODES == ("open_loop", "pid", "ff", "ffpid")
 
 
+@pytest.mark.slow
 def test_run_cli_takes_ffpid_gains_and_stores_them(run_cli, tmp_path):
     proc = run_cli(
         "run", "--mock", "--mock-speed", "4", "--rate-hz", "100", "--load-kg", "2",

@@ -352,6 +352,7 @@ def _width_k(temp, pos):
     return area / abs(cold - hot)
 
 
+@pytest.mark.slow
 def test_complete_cycles_shift_up_and_narrow_with_load(recorded):
     widths, colds = {}, {}
     for load in (1.0, 4.0):
@@ -367,6 +368,7 @@ def test_complete_cycles_shift_up_and_narrow_with_load(recorded):
     assert widths[4.0] < widths[1.0] - 2.0  # … and gets narrower
 
 
+@pytest.mark.slow
 def test_recorded_positions_follow_the_plant(recorded):
     """The plant simulated offline on the recorded current reproduces the recorded positions:
     the recorded time, current and position belong together."""
@@ -379,6 +381,7 @@ def test_recorded_positions_follow_the_plant(recorded):
         assert rms_pct < 1.0, f"{load} kg: {rms_pct:.2f} % of stroke"  # 0.4 % measured
 
 
+@pytest.mark.slow
 def test_incomplete_cycles_reheat_before_the_wire_cooled(recorded):
     d = recorded[("incomplete", 1.0)].data
     cold, hot = _cold_hot(d["temperature_est_C"], d["position_mm"])
@@ -387,6 +390,7 @@ def test_incomplete_cycles_reheat_before_the_wire_cooled(recorded):
         assert end < cold - 0.1 * (cold - hot), (k, end)
 
 
+@pytest.mark.slow
 def test_inner_loops_stay_inside_the_major_loop(recorded):
     d = recorded[("inner", 4.0)].data
     inner = (d["cycle"] >= 1) & (d["cycle"] <= 3)

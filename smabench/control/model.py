@@ -18,7 +18,8 @@ default because they cost about a second and need no wire time.
 
 Inverse (:class:`InverseLoop`): position setpoint → temperature on the branch that the motion
 needs (the setpoint falling = the wire shortening = heating branch; rising = cooling branch).
-Reversal points follow the rules of :class:`~smabench.physics.loop_models.LoopStepper`:
+Reversal points follow the rules of :class:`~smabench.physics.loop_models.LoopStepper` — the
+same :class:`~smabench.physics.memory.ReversalMemory`, here driven by the setpoint:
 an incomplete cycle moves the first common point to the reversal point (the branch runs from
 there to the major common point); with ``memory`` > 1 the older reversal points are kept as
 well, so inner loops head for the previous reversal point and are wiped out when it is passed.

@@ -105,6 +105,7 @@ def test_the_current_is_commanded_every_tick():
     it does not change."""
     result, rows, bench = session(Constant(0.5, duration_s=2.0 - PERIOD_S / 2))
     assert result.status == "completed" and result.samples == len(rows) == 401
+    assert result.cause == "completed"
     # one ENABLE at the start, then one command per tick except the last (done: made safe)
     assert bench.source.commands == 1 + len(rows) - 1
 
@@ -172,6 +173,7 @@ def test_operator_requests_and_device_faults_end_the_session_with_the_output_off
 
     result, rows, bench = session(Constant(1.2), at={200: at_200})
     assert result.status == status and result.reason.startswith(reason), result.reason
+    assert result.cause == ("device" if "fault" in reason else "operator")
     # the tick that sees the event records nothing and commands nothing
     assert 200 <= len(rows) <= 200 + ticks
     if status == "aborted":  # e-stop and fault: the output went off at once
@@ -182,6 +184,7 @@ def test_operator_requests_and_device_faults_end_the_session_with_the_output_off
 def test_the_maximum_duration_ends_the_session():
     result, rows, bench = session(Constant(0.5), max_duration_s=2.0)
     assert result.status == "aborted" and "maximum duration 2.0 s" in result.reason
+    assert result.cause == "interlock"
     assert col(rows, "t_s")[-1] == pytest.approx(2.0, abs=PERIOD_S)
     assert_output_off(bench)
 
@@ -190,6 +193,7 @@ def test_a_lost_sensor_ends_the_session_after_its_timeout():
     result, rows, bench = session(Constant(0.8), at={100: lambda rt, b: b.sensor.fail()})
     t = col(rows, "t_s")
     assert result.status == "aborted" and "displacement sensor lost" in result.reason
+    assert result.cause == "device"
     # the last valid reading was at tick 99; the timeout is 1 s
     assert t[-1] - t[99] == pytest.approx(1.0, abs=2 * PERIOD_S)
     flags = col(rows, "flags").astype(int)
@@ -219,6 +223,7 @@ def test_a_burst_of_bad_samples_is_flagged_never_fed_to_the_controller_and_the_r
 def test_lost_telemetry_ends_the_session_within_the_link_timeout():
     result, rows, bench = session(Constant(0.8), at={100: lambda rt, b: b.source.stall_telemetry()})
     assert result.status == "aborted" and "telemetry lost for" in result.reason
+    assert result.cause == "device"
     t = col(rows, "t_s")
     # frames every 10 ms, link timeout 0.25 s: the session ends within 0.27 s of the stall
     assert 0.24 <= t[-1] - t[100] <= 0.27
@@ -237,6 +242,7 @@ def test_lost_telemetry_ends_the_session_within_the_link_timeout():
 def test_interlocks_end_the_session_on_a_flagged_row_without_commanding(current_a, cfg, reason):
     result, rows, bench = session(Constant(current_a), **cfg)
     assert result.status == "aborted" and result.reason.startswith(reason), result.reason
+    assert result.cause == "interlock"
     assert int(rows[-1]["flags"]) & FLAG_INTERLOCK
     assert not any(int(r["flags"]) & FLAG_INTERLOCK for r in rows[:-1])
     # the tripping command never reached the driver
@@ -252,6 +258,7 @@ def test_a_broken_wire_ends_the_session_before_the_driver_notices(current_a):
     session ends within a few ticks, before the driver latches OPEN_WIRE (50 ms)."""
     result, rows, bench = session(Constant(current_a), at={300: lambda rt, b: b.plant.break_wire()})
     assert result.status == "aborted" and result.reason.startswith("broken wire: position jumped +")
+    assert result.cause == "interlock"  # an unattended plan must not run the step again
     t = col(rows, "t_s")
     assert t[-1] - t[300] <= 0.035  # ≈ 1 mm per tick after 20 ms of free fall
     assert not bench.source.flags & p.Flag.OPEN_WIRE

@@ -57,6 +57,7 @@ class RunResult:
     samples: int
     periods_s: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
     missed_deadlines: int = 0
+    cause: str = ""  # smabench.bench.tick.CAUSES: completed, operator, interlock, device
 
 
 class BenchRuntime:
@@ -174,7 +175,7 @@ class BenchRuntime:
         period_s = 1.0 / cfg.rate_hz
         periods: list[float] = []
         missed = n = 0
-        status, reason = "aborted", "interrupted"
+        status, reason, cause = "aborted", "interrupted", "device"
         t0 = clock()
         next_tick = t0
         last_tick: float | None = None
@@ -214,14 +215,14 @@ class BenchRuntime:
                     if self.on_sample is not None:
                         self.on_sample(out.row)
                 if out.ended:
-                    status, reason = out.status, out.reason
+                    status, reason, cause = out.status, out.reason, out.cause
                     break
                 self.source.set_current(out.current_a)
         except Exception as exc:  # any failure ends the session safely, with the reason
             log.exception("runtime loop failed")
-            status, reason = "aborted", f"{type(exc).__name__}: {exc}"
+            status, reason, cause = "aborted", f"{type(exc).__name__}: {exc}", "device"
         finally:
             self._safe_all()
-        self.result = RunResult(status, reason, n, np.asarray(periods), missed)
+        self.result = RunResult(status, reason, n, np.asarray(periods), missed, cause)
         log.info("session ended: %s (%s), %d samples", status, reason, n)
         return self.result

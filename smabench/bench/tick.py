@@ -64,6 +64,11 @@ contraction at the driver's 2.5 A hard limit under 1–4 kg runs at 20–23 mm/s
 (0.37–0.42 /s); cooling runs at ≈ 2 mm/s. The broken-wire check allows this much motion over
 the time between two valid samples on top of ``max_jump_mm``."""
 
+CAUSES = ("completed", "operator", "interlock", "device")
+"""Why a session ended: the source finished; e-stop or stop; an interlock (current,
+temperature, position, broken wire, maximum duration: running again would trip it again or is
+unsafe); a device problem (a lost sensor or driver link, a driver fault or its output off)."""
+
 POSITION_INVALID_BITS = FLAGS_POSITION_INVALID | FLAG_SENSOR_STATUS
 """Sample flags that make a position invalid: link problems and the sensor's own error bits."""
 
@@ -112,13 +117,16 @@ class TickResult:
     ``row``: the sample to record (None when the session ended before anything was measured:
     e-stop, stop, duration, a lost device, a fault); ``current_a``: the current to command now
     (None when the session ends: the owner makes both devices safe instead); ``status`` /
-    ``reason``: set when the session must end (``aborted``, ``stopped`` or ``completed``).
+    ``reason``: set when the session must end (``aborted``, ``stopped`` or ``completed``);
+    ``cause``: one of :data:`CAUSES`, so that callers (an unattended plan deciding whether to
+    run a step again) need not parse the reason.
     """
 
     row: dict[str, Any] | None
     current_a: float | None
     status: str | None = None
     reason: str = ""
+    cause: str = ""  # why it ended: see CAUSES
 
     @property
     def ended(self) -> bool:
@@ -143,8 +151,8 @@ class ControlTick:
         self._reported_fault = ""
         self.ticks = 0
 
-    def _end(self, status: str, reason: str, row: dict | None = None) -> TickResult:
-        return TickResult(row, None, status, reason)
+    def _end(self, status: str, reason: str, cause: str, row: dict | None = None) -> TickResult:
+        return TickResult(row, None, status, reason, cause)
 
     def step(
         self,
@@ -170,11 +178,13 @@ class ControlTick:
         dt_s = dt_clock * cfg.time_scale
 
         if estop:
-            return self._end("aborted", "e-stop")
+            return self._end("aborted", "e-stop", "operator")
         if stop:
-            return self._end("stopped", "stopped by operator")
+            return self._end("stopped", "stopped by operator", "operator")
         if clock_s > cfg.max_duration_s:
-            return self._end("aborted", f"maximum duration {cfg.max_duration_s} s reached")
+            return self._end(
+                "aborted", f"maximum duration {cfg.max_duration_s} s reached", "interlock"
+            )
 
         flags |= int(sample.flags) & SENSOR_FLAGS_MASK
         position_mm = float(sample.position_mm)
@@ -186,7 +196,7 @@ class ControlTick:
             position_mm = math.nan
         lost_s = clock_s - self._last_good_clock_s
         if lost_s > cfg.sensor_timeout_s:
-            return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s")
+            return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s", "device")
 
         starting = clock_s <= cfg.link_timeout_s  # start-up grace: the first frames may be old
         if telemetry is None or telemetry_age_s is None or telemetry_age_s > cfg.link_timeout_s:
@@ -196,6 +206,7 @@ class ControlTick:
                     "current driver telemetry lost"
                     if telemetry_age_s is None
                     else f"current driver telemetry lost for {telemetry_age_s:.2f} s",
+                    "device",
                 )
             flags |= FLAG_TELEMETRY_STALE
         output_on = telemetry is not None and bool(telemetry.flags & Flag.ENABLED)
@@ -206,6 +217,7 @@ class ControlTick:
                     f"current driver fault: {fault}"
                     if fault
                     else "current driver output turned off by the device",
+                    "device",
                 )
             # a frame from before the session's ENABLE: its events (a host timeout while the
             # session was being set up) are history, not this session's fault
@@ -256,9 +268,9 @@ class ControlTick:
         )
         self.ticks += 1
         if interlock:
-            return self._end("aborted", interlock, row)
+            return self._end("aborted", interlock, "interlock", row)
         if step.done:
-            return self._end("completed", "protocol completed", row)
+            return self._end("completed", "protocol completed", "completed", row)
         return TickResult(row, current_set_a)
 
     def _interlock(self, current_set_a: float, temperature_c: float, position_mm: float) -> str:

@@ -34,7 +34,7 @@ def shown_cycle(index: float) -> int:
     return int(index) + 1
 
 
-WORKER_NICE = 10
+WORKER_NICE = 19  # the lowest: a fit must not take CPU from the bench or the GUI
 
 
 def _lower_priority() -> None:

@@ -181,7 +181,8 @@ def _long_fit(qtbot, w, tmp_path):
     w.fit_model.setCurrentText("preisach")
     click(qtbot, w.fit_button)
     qtbot.waitUntil(lambda: w.jobs.busy, timeout=2000)
-    time.sleep(0.3)  # let the fit get going (it takes seconds)
+    t0 = time.monotonic()  # past the worker's start-up, into the fit (it takes seconds)
+    qtbot.waitUntil(lambda: time.monotonic() - t0 > 1.5, timeout=5000)
     assert w.jobs.busy, "the fit must still be running when the key is pressed"
     return w.fit_cycle
 

@@ -68,6 +68,10 @@ class Jobs:
                 1, mp_context=multiprocessing.get_context("spawn"), initializer=_lower_priority
             )
         fut = self._procs.submit(fn, *args)
+        # lowered from here too: the initializer only runs after the worker's start-up imports
+        for pid in list(getattr(self._procs, "_processes", None) or {}):
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, pid, WORKER_NICE)
         self.pending.append((fut, done, failed))
         return fut
 

@@ -7,8 +7,12 @@ control commands on stdin: ``R <ohms>`` (wire resistance), ``V <volts>`` (supply
 ``make -C firmware elf sim`` (``make test`` does). Skipped when missing, except under CI.
 
 Timing is checked in device time (the telemetry's ``t_ms``) and on the device side (the
-harness's wire current), never against the wall clock. The new commands (calibration, heat
-model) go through :class:`RawDevice`, a minimal client on the shared codec.
+harness's wire current), never against the wall clock: on a loaded machine the emulator runs at
+55–70 % of real time and the host may read late. Every telemetry frame is kept in order
+(:class:`Frames`, :class:`RawDevice`), none skipped; host deadlines are generous and only bound
+a wait. The driver here never resends a command (``retries=0``): a resent SET_CURRENT or ENABLE
+would restart the lease at a time no frame shows. The new commands (calibration, heat model) go
+through :class:`RawDevice`, a minimal client on the shared codec.
 """
 
 from __future__ import annotations
@@ -38,7 +42,8 @@ _MISSING = [str(path) for path in (SIM, ELF) if not path.is_file()]
 
 pytestmark = [
     pytest.mark.emulator,
-    pytest.mark.timeout(60),
+    pytest.mark.slow,  # a simavr process per test
+    pytest.mark.timeout(120),
     # `make test` builds both first; under CI a missing build is a failure, never a skip
     pytest.mark.skipif(
         bool(_MISSING) and not os.environ.get("CI"),
@@ -48,6 +53,8 @@ pytestmark = [
 
 SETTLING_MS = 50  # PROTOCOL.md: within 5 % of a step within 50 ms
 HOST_TIMEOUT_S = 0.25
+TELEMETRY_MS = 5  # the telemetry period the fixtures set
+WAIT_S = 10.0  # host deadline for a device event: bounds a wait, measures nothing
 M = p.MsgType
 S = p.Status
 
@@ -69,7 +76,7 @@ class Harness:
         self._reader.start()
         self.stderr: list[str] = []
         threading.Thread(target=self._read_err, daemon=True).start()
-        line = self._expect("PTY ", 10.0)
+        line = self._expect("PTY ", 30.0)
         self.port_name = line.split(None, 1)[1].strip()
 
     def _read(self) -> None:
@@ -105,7 +112,7 @@ class Harness:
 
     def state(self) -> dict[str, float]:
         self.send("Q")
-        line = self._expect("STATE", 2.0)
+        line = self._expect("STATE", WAIT_S)
         out = {}
         for tok in line.split()[1:]:
             k, _, v = tok.partition("=")
@@ -136,11 +143,63 @@ def sim():
 
 @pytest.fixture
 def cs(sim):
-    src = CurrentSource(sim.port_name, telemetry_period_s=0.005, ack_timeout_s=0.2)
+    # no resends (a late ACK under load is waited for, not answered by a second command) and a
+    # link that a busy host does not declare lost (which would redo the handshake mid-test)
+    src = CurrentSource(
+        sim.port_name, telemetry_period_s=TELEMETRY_MS / 1e3, ack_timeout_s=1.0, retries=0,
+        link_timeout_s=3.0, connect_wait_s=15.0,
+    )  # fmt: skip
     src.connect()
     src.set_lease(5.0)  # these tests hold a setpoint without renewing it; the lease has its own
     yield src
     src.close()
+
+
+class Frames:
+    """Every telemetry frame the driver delivers, in order (a subscription: none skipped, unlike
+    ``wait_telemetry`` which sees only the latest when the host reads late)."""
+
+    def __init__(self, src: CurrentSource) -> None:
+        self.items: list[p.Telemetry] = []
+        self._cond = threading.Condition()
+        self.unsubscribe = src.subscribe(self._add)
+
+    def _add(self, t: p.Telemetry) -> None:
+        with self._cond:
+            self.items.append(t)
+            self._cond.notify_all()
+
+    def mark(self) -> int:
+        """Index of the next frame to arrive."""
+        with self._cond:
+            return len(self.items)
+
+    def find(self, pred=lambda t: True, start: int | None = None, timeout_s: float = WAIT_S):
+        """(index, frame) of the first frame from ``start`` (default: the next one) on that
+        satisfies ``pred``; AssertionError after ``timeout_s`` of host time."""
+        i = self.mark() if start is None else start
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                while i < len(self.items):
+                    if pred(self.items[i]):
+                        return i, self.items[i]
+                    i += 1
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    last = self.items[-1] if self.items else None
+                    raise AssertionError(f"no matching telemetry within {timeout_s} s: {last}")
+                self._cond.wait(left)
+
+    def wait(self, pred=lambda t: True, start: int | None = None, timeout_s: float = WAIT_S):
+        return self.find(pred, start, timeout_s)[1]
+
+
+@pytest.fixture
+def tel(cs):
+    frames = Frames(cs)
+    yield frames
+    frames.unsubscribe()
 
 
 class RawDevice:
@@ -173,7 +232,7 @@ class RawDevice:
                 self.pending += self.rx.feed(os.read(self.fd, 4096))
         return self.pending.pop(0)
 
-    def command(self, type_: int, payload: bytes = b"", timeout_s: float = 1.0) -> p.Ack:
+    def command(self, type_: int, payload: bytes = b"", timeout_s: float = 5.0) -> p.Ack:
         seq = self.send(type_, payload)
         end = time.monotonic() + timeout_s
         while (left := end - time.monotonic()) > 0:
@@ -187,7 +246,7 @@ class RawDevice:
     def status(self, type_: int, payload: bytes = b"") -> S:
         return S(self.command(type_, payload).status)
 
-    def telemetry(self, pred=lambda t: True, timeout_s: float = 2.0) -> p.Telemetry:
+    def telemetry(self, pred=lambda t: True, timeout_s: float = WAIT_S) -> p.Telemetry:
         end = time.monotonic() + timeout_s
         while (left := end - time.monotonic()) > 0:
             pkt = self._next(left)
@@ -195,30 +254,28 @@ class RawDevice:
                 t = p.Telemetry.from_payload(pkt.payload)
                 if pred(t):
                     return t
-        raise AssertionError("no matching telemetry")
+        raise AssertionError(f"no matching telemetry within {timeout_s} s")
 
-    def frames(self, seconds: float) -> list[p.Telemetry]:
-        out, end = [], time.monotonic() + seconds
-        while (left := end - time.monotonic()) > 0:
-            pkt = self._next(left)
-            if pkt is not None and pkt.type == M.TELEMETRY:
-                out.append(p.Telemetry.from_payload(pkt.payload))
+    def until(self, pred, timeout_s: float = WAIT_S) -> list[p.Telemetry]:
+        """Every telemetry frame up to and including the first that satisfies ``pred``."""
+        out: list[p.Telemetry] = []
+        self.telemetry(lambda t: out.append(t) or pred(t), timeout_s)
         return out
 
 
 @pytest.fixture
 def raw(sim):
     dev = RawDevice(sim.port_name)
-    deadline = time.monotonic() + 5.0  # the firmware may still be booting: ask until it answers
+    deadline = time.monotonic() + 20.0  # the firmware may still be booting: ask until it answers
     while True:
         try:
-            assert S(dev.command(*p.identify(), timeout_s=0.2).status) == S.OK
+            assert S(dev.command(*p.identify(), timeout_s=0.5).status) == S.OK
             break
         except AssertionError:
             if time.monotonic() > deadline:
                 raise
-    assert dev.status(*p.set_limits(2.5, 1.0)) == S.OK
-    assert dev.status(*p.set_telemetry(0.005)) == S.OK
+    assert dev.status(*p.set_limits(2.5, 5.0)) == S.OK  # host timeout: a busy host is no fault here
+    assert dev.status(*p.set_telemetry(TELEMETRY_MS / 1e3)) == S.OK
     yield dev
     dev.close()
 
@@ -240,83 +297,94 @@ def wait_until(cond, timeout_s: float, what: str):
 def test_handshake_and_version(cs):
     assert cs.info == p.DeviceInfo(2, (2, 0, 0), 2.5, "SMA-CD328")
     assert cs.link_ok
-    t = cs.wait_telemetry(timeout_s=1.0)
+    t = cs.wait_telemetry(timeout_s=WAIT_S)
     assert not t.enabled and t.duty == 0.0
     rts = sorted(cs.ping() for _ in range(20))
     print(f"\nPING round trip to the emulated firmware: median {rts[10] * 1e3:.2f} ms")
 
 
 def test_version_mismatch(sim):
-    src = CurrentSource(sim.port_name, protocol_version=1, ack_timeout_s=0.2)
+    src = CurrentSource(sim.port_name, protocol_version=1, ack_timeout_s=1.0)
     with pytest.raises(VersionMismatch):
         src.connect()
     src.close()
 
 
-def test_set_current_follows(cs, sim):
+def test_set_current_follows(cs, tel, sim):
     sim.set_resistance(0.44)
-    cs.set_current(1.0)
+    cs.set_current(1.0, wait=True)
+    start = tel.mark()
     cs.enable(True)
-    first = cs.wait_telemetry(lambda t: t.enabled and t.setpoint_a == pytest.approx(1.0), 1.0)
-    settled = cs.wait_telemetry(lambda t: abs(t.current_a - 1.0) <= 0.05, 2.0)
+    i, first = tel.find(lambda t: t.enabled and t.setpoint_a == pytest.approx(1.0), start)
+    j, settled = tel.find(lambda t: abs(t.current_a - 1.0) <= 0.05, i)
     assert settled.t_ms - first.t_ms <= SETTLING_MS + 10
+    # and it stays there (PROTOCOL.md: within 5 %), frame by frame for 50 ms of device time
+    k, _ = tel.find(lambda t: t.t_ms >= settled.t_ms + 50, j)
+    assert all(abs(t.current_a - 1.0) <= 0.05 for t in tel.items[j : k + 1])
     state = sim.state()
     assert state["duty"] > 0
     assert state["current_a"] == pytest.approx(1.0, abs=0.01)
     # the Kelvin voltage and the precise current give the wire's resistance
     # (V and I alternate on the ADS1115 every 8 ms: both after the step, 50 ms later)
-    t = cs.wait_telemetry(lambda t: t.t_ms > settled.t_ms + 50, 1.0)
+    t = tel.wait(lambda t: t.t_ms > settled.t_ms + 50, j)
     assert t.resistance_ohm == pytest.approx(0.44, rel=0.002)
     cs.make_safe()
-    cs.wait_telemetry(lambda t: not t.enabled and t.duty == 0.0, 1.0)
+    tel.wait(lambda t: not t.enabled and t.duty == 0.0)
 
 
-def test_clamping(cs):
-    cs.set_limits(0.8, HOST_TIMEOUT_S)
+def test_clamping(cs, tel):
+    cs.set_limits(0.8, 1.0)
     assert cs.set_current(1.5, wait=True) == p.Status.CLAMPED
     cs.enable(True)
-    t = cs.wait_telemetry(lambda t: abs(t.current_a - 0.8) <= 0.05, 2.0)
+    t = tel.wait(lambda t: abs(t.current_a - 0.8) <= 0.05)
     assert t.setpoint_a == pytest.approx(0.8)
 
 
-def test_host_timeout_turns_output_off(cs, sim):
-    cs.set_current(1.0)
+def test_host_timeout_turns_output_off(cs, tel, sim):
+    cs.set_limits(cs.info.hard_limit_a, HOST_TIMEOUT_S)
+    cs.set_current(1.0, wait=True)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.current_a > 0.9, 2.0)
+    tel.wait(lambda t: t.current_a > 0.9)
     cs.pause_keepalive()
-    on = cs.wait_telemetry(timeout_s=1.0)
-    off = cs.wait_telemetry(lambda t: not t.enabled, 3.0)
-    assert off.flags & F.HOST_TIMEOUT
-    # in device time: at most the host timeout (+ one keepalive interval, + telemetry period)
-    assert off.t_ms - on.t_ms <= 1e3 * (HOST_TIMEOUT_S + 0.02) + 10
-    wait_until(lambda: sim.state()["current_a"] == 0.0, 1.0, "no current in the simulator")
+    # the last frame the device gets is our PING: it arrived after frame `before - 1` (received
+    # before it was sent) and before frame `after` (it follows the PING's ACK on the wire)
+    before = tel.mark()
+    cs.ping()
+    after = tel.mark()
+    _, off = tel.find(lambda t: not t.enabled, after)
+    assert off.flags & F.HOST_TIMEOUT and not off.flags & F.LEASE_EXPIRED
+    # in device time: the host timeout after that PING, to within a telemetry period and a tick
+    assert off.t_ms - tel.items[before - 1].t_ms >= 1e3 * HOST_TIMEOUT_S
+    assert off.t_ms - tel.items[after].t_ms <= 1e3 * HOST_TIMEOUT_S + TELEMETRY_MS + 2
+    wait_until(lambda: sim.state()["current_a"] == 0.0, WAIT_S, "no current in the simulator")
     cs.pause_keepalive(False)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.enabled and not t.flags & F.HOST_TIMEOUT, 1.0)
+    tel.wait(lambda t: t.enabled and not t.flags & F.HOST_TIMEOUT)
 
 
-def test_bad_crc_frames_counted(cs):
-    t0 = cs.wait_telemetry(timeout_s=1.0)
+def test_bad_crc_frames_counted(cs, tel):
+    t0 = tel.wait()
     bad = bytearray(p.encode_frame(200, p.MsgType.ENABLE, b"\x01"))
     bad[-2] ^= 0x40
     for _ in range(4):
         cs.send_raw(bytes(bad))
     cs.send_raw(b"\x02\x00")  # a too-short frame
-    t = cs.wait_telemetry(
-        lambda t: t.crc_errors >= t0.crc_errors + 4 and t.frame_errors >= t0.frame_errors + 1, 2.0
+    t = tel.wait(
+        lambda t: t.crc_errors >= t0.crc_errors + 4 and t.frame_errors >= t0.frame_errors + 1
     )
+    assert (t.crc_errors, t.frame_errors) == (t0.crc_errors + 4, t0.frame_errors + 1)
     assert not t.enabled  # the corrupted ENABLE 1 was dropped
     cs.ping()
     assert cs.link_ok
 
 
-def test_open_wire_latches(cs, sim):
+def test_open_wire_latches(cs, tel, sim):
     sim.set_resistance(0.44)
     cs.set_current(1.0)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.current_a > 0.9, 2.0)
+    tel.wait(lambda t: t.current_a > 0.9)
     sim.send("OPEN")
-    t = cs.wait_telemetry(lambda t: t.flags & F.OPEN_WIRE, 2.0)
+    t = tel.wait(lambda t: t.flags & F.OPEN_WIRE)
     assert not t.enabled
     assert "open wire" in cs.fault_text()
     with pytest.raises(DeviceFault):
@@ -324,9 +392,9 @@ def test_open_wire_latches(cs, sim):
     assert cs.make_safe()
     sim.set_resistance(0.5)
     cs.clear_faults()
-    cs.wait_telemetry(lambda t: not t.flags & F.OPEN_WIRE, 1.0)
+    tel.wait(lambda t: not t.flags & F.OPEN_WIRE)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 2.0)
+    tel.wait(lambda t: t.enabled and t.current_a > 0.9)
 
 
 # ------------------------------------------------------------------ safety, device side
@@ -340,7 +408,8 @@ def test_current_step_across_wires_and_supplies(raw, sim, wire_ohm, supply_v):
     raw.status(*p.set_lease(5.0))
     raw.status(*p.enable(True))
     raw.status(*p.set_current(1.0))
-    rows = [t for t in raw.frames(0.25) if t.setpoint_a == pytest.approx(1.0)]
+    first = raw.telemetry(lambda t: t.setpoint_a == pytest.approx(1.0))
+    rows = [first] + raw.until(lambda t: t.t_ms >= first.t_ms + 100)  # 100 ms of device time
     t0 = rows[0].t_ms - 5  # the setpoint arrived within the 5 ms before the first frame
     last_out = max((t.t_ms - t0 for t in rows if abs(t.current_a - 1.0) > 0.05), default=0)
     assert last_out <= 10, [(t.t_ms - t0, t.current_a) for t in rows[:5]]
@@ -348,25 +417,38 @@ def test_current_step_across_wires_and_supplies(raw, sim, wire_ohm, supply_v):
     assert sim.state()["current_a"] == pytest.approx(1.0, abs=0.005)
 
 
-def test_lease_expires_while_pings_go_on(cs, sim):
+def test_lease_expires_while_pings_go_on(cs, tel, sim):
     """The driver's own keepalive PINGs go on; the control loop stops renewing the setpoint:
-    the output goes off after the lease, in device time, with LEASE_EXPIRED, not HOST_TIMEOUT."""
+    the output goes off after the lease, in device time, with LEASE_EXPIRED, not HOST_TIMEOUT.
+
+    The host timeout (0.5 s) is shorter than the lease (1 s): had the PINGs stopped, the host
+    timeout would have tripped first. Each PING may come as late as 0.5 s of device time (about
+    0.8 s of host time on a loaded machine), so a busy host does not decide the outcome."""
+    lease_ms, host_timeout_s = 1000, 0.5
     sim.set_resistance(0.44)
-    cs.set_lease(0.25)
-    cs.set_current(0.8)
+    cs.set_limits(cs.info.hard_limit_a, host_timeout_s)
+    cs.set_lease(lease_ms / 1e3)
+    cs.set_current(0.8, wait=True)
+    tel.wait()
+    # ENABLE 1 (after SET_CURRENT) starts the lease: it reaches the device after frame
+    # `before - 1` and before frame `after` (which follows its ACK on the wire)
+    before = tel.mark()
     cs.enable(True)
-    first = cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.75, 1.0)
+    after = tel.mark()
     k0 = cs.counters().keepalives
-    off = cs.wait_telemetry(lambda t: not t.enabled, 2.0)
+    i_on, _ = tel.find(lambda t: t.enabled and t.current_a > 0.75, after)
+    i_off, off = tel.find(lambda t: not t.enabled, after)
+    assert i_on < i_off, "the output never carried the current"
     assert off.flags & F.LEASE_EXPIRED and not off.flags & F.HOST_TIMEOUT
     assert off.setpoint_a == 0.0
     assert cs.counters().keepalives > k0  # PINGs kept the link alive meanwhile
-    assert off.t_ms - first.t_ms <= 250 + 10  # the setpoint was sent before `first`
-    wait_until(lambda: sim.state()["current_a"] == 0.0, 1.0, "no current in the simulator")
+    assert off.t_ms - tel.items[before - 1].t_ms >= lease_ms
+    assert off.t_ms - tel.items[after].t_ms <= lease_ms + TELEMETRY_MS + 2
+    wait_until(lambda: sim.state()["current_a"] == 0.0, WAIT_S, "no current in the simulator")
     assert cs.link_ok
     cs.enable(True)  # ENABLE clears the event; SET_CURRENT renews
     cs.set_current(0.5)
-    cs.wait_telemetry(lambda t: t.enabled and not t.flags & F.LEASE_EXPIRED, 1.0)
+    tel.wait(lambda t: t.enabled and not t.flags & F.LEASE_EXPIRED)
 
 
 def test_estop_input_latches(raw, sim):
@@ -398,14 +480,15 @@ def test_energy_budget_trips_under_endless_2_5_a(raw, sim):
     assert raw.status(*p.set_heat_model(short)) == S.OK
     ack = raw.command(*p.get_heat_model())
     assert p.HeatModel.from_data(ack.data) == short
-    raw.telemetry(lambda t: t.wire_model_c < 23.0, 5.0)  # from ambient, as the wire
+    raw.telemetry(lambda t: t.wire_model_c < 23.0)  # from ambient, as the wire
     raw.status(*p.set_lease(5.0))
     raw.status(*p.set_current(2.5))
     raw.status(*p.enable(True))
     c_wire, g_wire = 0.002 * 1.2, short.conductance_w_per_k * 120 / 90
     t_wire, peak, first_trip, start, last = 22.0, 22.0, None, None, None
-    end, last_cmd = time.monotonic() + 3.6, 0.0
-    while time.monotonic() < end:
+    deadline, last_cmd = time.monotonic() + 60.0, 0.0  # a host bound; the run is device time
+    while start is None or last - start < 3600:
+        assert time.monotonic() < deadline, "3.6 s of device time did not pass"
         if time.monotonic() - last_cmd > 0.05:  # the host insists, and renews the lease
             for cmd in (p.set_current(2.5), p.clear_faults(), p.enable(True)):
                 raw.send(*cmd)
@@ -436,38 +519,38 @@ def test_energy_budget_trips_under_endless_2_5_a(raw, sim):
 
 @pytest.mark.parametrize("fault", ["OPEN", "SHORT"])
 def test_ntc_open_or_short_is_a_fault(raw, sim, fault):
-    assert raw.telemetry(lambda t: not math.isnan(t.ambient_c), 1.0).ambient_c == pytest.approx(
+    assert raw.telemetry(lambda t: not math.isnan(t.ambient_c)).ambient_c == pytest.approx(
         22.0, abs=0.5
     )
     sim.send(f"NTC {fault}")
-    t = raw.telemetry(lambda t: t.flags & F.NTC_FAULT, 1.0)
+    t = raw.telemetry(lambda t: t.flags & F.NTC_FAULT)
     assert math.isnan(t.ambient_c)  # never −92 °C or +562 °C
     sim.send("NTC OK")
-    raw.telemetry(lambda t: not t.flags & F.NTC_FAULT, 1.0)
+    raw.telemetry(lambda t: not t.flags & F.NTC_FAULT)
 
 
 def test_thermocouple_reads_and_faults(raw, sim):
     assert raw.telemetry().thermocouple_status == p.TcStatus.ABSENT  # no chip by default
     sim.send("TC 87.25")
-    t = raw.telemetry(lambda t: t.thermocouple_c == 87.25, 1.0)
+    t = raw.telemetry(lambda t: t.thermocouple_c == 87.25)
     assert t.temperature_c == 87.25 and not t.flags & F.TC_FAULT
     for name, bit in (("OC", p.TcStatus.OC), ("SCG", p.TcStatus.SCG), ("SCV", p.TcStatus.SCV)):
         sim.send(f"TC {name}")
-        t = raw.telemetry(lambda t, b=bit: t.thermocouple_status == b, 1.0)
+        t = raw.telemetry(lambda t, b=bit: t.thermocouple_status == b)
         assert math.isnan(t.thermocouple_c) and t.flags & F.TC_FAULT
     sim.send("TC NONE")
-    t = raw.telemetry(lambda t: t.thermocouple_status == p.TcStatus.ABSENT, 1.0)
+    t = raw.telemetry(lambda t: t.thermocouple_status == p.TcStatus.ABSENT)
     assert math.isnan(t.thermocouple_c) and not t.flags & F.TC_FAULT
     # a measured wire at the maximum trips OVERTEMP even with a cool model
     raw.status(*p.set_lease(5.0))
     raw.status(*p.set_current(0.3))
     raw.status(*p.enable(True))
     sim.send("TC 181")
-    t = raw.telemetry(lambda t: t.flags & F.OVERTEMP, 1.0)
+    t = raw.telemetry(lambda t: t.flags & F.OVERTEMP)
     assert not t.enabled and t.wire_model_c < 60.0
     assert raw.status(*p.clear_faults()) == S.FAULT_ACTIVE
     sim.send("TC 60")
-    raw.telemetry(lambda t: t.thermocouple_c == 60.0, 1.0)
+    raw.telemetry(lambda t: t.thermocouple_c == 60.0)
     assert raw.status(*p.clear_faults()) == S.OK
 
 
@@ -484,7 +567,12 @@ def test_calibration_in_eeprom(raw, sim):
     raw.status(*p.set_current(1.0))
     raw.status(*p.enable(True))
     assert raw.status(*p.set_calibration(p.Calibration())) == S.OUTPUT_ON
-    t = raw.telemetry(lambda t: abs(t.current_a - 1.0) < 0.003 and t.t_ms > 300, 2.0)
+    # steady in device time (the trim has learned the path): the last 100 ms of 300 ms at 1 A
+    on = raw.telemetry(lambda t: t.enabled and t.setpoint_a == pytest.approx(1.0))
+    rows = raw.until(lambda t: t.t_ms >= on.t_ms + 300)
+    steady = [r.current_a for r in rows if r.t_ms >= on.t_ms + 200]
+    assert max(abs(i - 1.0) for i in steady) < 0.003, steady
+    t = rows[-1]
     # the firmware believes 1.02 x what the sink gives: the wire carries 1/1.02 A
     assert sim.state()["current_a"] == pytest.approx(1.0 / 1.02, abs=0.005)
     assert t.voltage_v == pytest.approx(0.99 * 0.44 * sim.state()["current_a"], rel=0.003)

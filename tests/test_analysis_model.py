@@ -118,10 +118,11 @@ def test_residual_strain_family(q, n0):
 
 
 def test_registry_declares_every_candidate_once():
-    from smabench.analysis.candidates import BASELINE, CP_J_KGK, PARAMS, REGISTRY
+    from smabench.analysis.candidates import BASELINE, CP_J_KGK, PARAMS, REGISTRY, RIVAL
     from smabench.physics.wire import PAPER_WIRE
 
-    names = [p.name for p in BASELINE] + [p.name for c in REGISTRY.values() for p in c.params]
+    names = [p.name for p in (*BASELINE, *RIVAL)] + [p.name for c in REGISTRY.values()
+                                                     for p in c.params]
     assert len(names) == len(set(names)) == len(PARAMS)
     for c in REGISTRY.values():
         assert c.text and c.headline and c.params

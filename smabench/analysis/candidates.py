@@ -167,7 +167,13 @@ VERDICT_TEXT = {
     "cannot be told apart)",
 }
 
-PARAMS: dict[str, Param] = {p.name: p for p in BASELINE}
+RIVAL: tuple[Param, ...] = (
+    Param("xi_delay_s", "s (dead time of ξ only)", 0.2, 0.0, 10.0, 0.0),
+)
+"""Extra parameter of the kinetic rival of ``sensor_lag`` (``core.KINETIC_RIVAL``): the
+transformation late by a dead time, the thermal expansion not."""
+
+PARAMS: dict[str, Param] = {p.name: p for p in (*BASELINE, *RIVAL)}
 for _c in _LIST:
     PARAMS.update({p.name: p for p in _c.params})
 
@@ -189,4 +195,4 @@ def unit_of(name: str) -> str:
 
 def members(model: str) -> list[str]:
     """The candidates of a model name: "baseline" → [], "a+b" → ["a", "b"]."""
-    return [] if model == "baseline" else model.split("+")
+    return [m for m in model.split("+") if m in REGISTRY]

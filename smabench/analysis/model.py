@@ -294,6 +294,9 @@ def simulate(g: Grid, p: dict[str, float]) -> Simulated:
     behind the sensor lag. ε_mix bends the ξ → length map: a modulus mixed by volume (Voigt,
     as in Brinson's model) instead of compliance (Reuss), or a strain that is not linear in ξ."""
     temp, xi = wire_state(g, p)
+    xi_delay = p.get("xi_delay_s", 0.0)
+    if xi_delay > 1e-6:  # the transformation late, the thermal expansion not (kinetic rival)
+        xi = dead_time(xi, g.t, xi_delay)
     l0 = g.length_mm
     fixed = l0 * g.stress_mpa * DCOMPLIANCE_PER_MPA * xi
     rate = p.get("cyc_rate", 0.0)

@@ -308,6 +308,18 @@ def ask_load(load_kg: float, previous: float | None, step: str) -> bool:
     return line.strip().lower() not in ("stop", "s", "q", "quit", "abort")
 
 
+def asker(prompt: str = "auto") -> Callable[[float, float | None, str], bool]:
+    """The load-change prompt: ``gui`` a dialog, ``terminal`` :func:`ask_load`, ``auto`` the
+    dialog when a display is available."""
+    if prompt == "terminal":
+        return ask_load
+    from smabench.gui.plan_prompt import ask_load_dialog, display_available
+
+    if prompt == "gui" or display_available():
+        return ask_load_dialog
+    return ask_load
+
+
 def _run_step_session(plan: Plan, step: dict[str, Any], sid: str, dev: Devices) -> tuple[Path, Any]:
     from smabench.bench.headless import MockProcess, open_devices
     from smabench.bench.session_run import run_session
@@ -393,7 +405,9 @@ def execute(
                 save_state(folder, state)
                 raise
             retried = entry.setdefault("retried", 0)
-            if (result.status != "aborted" or result.reason.startswith("interlock")
+            # only a device problem is run again; an interlock, a broken wire, an e-stop or the
+            # operator end the step (RunResult.cause, smabench.bench.tick.CAUSES)
+            if (result.status != "aborted" or result.cause != "device"
                     or retried >= plan.settings["retries"]):  # fmt: skip
                 break
             # a device problem (link lost, sensor lost, driver fault): run the step again
@@ -454,7 +468,8 @@ def cmd_plan_run(args: argparse.Namespace) -> int:
                         "it (or move it away to start again)")  # fmt: skip
     for line in dry_run(plan):
         print(line)
-    return execute(plan, new_state(plan), dev, assume_loaded=args.assume_loaded)
+    return execute(plan, new_state(plan), dev, ask=asker(args.prompt),
+                   assume_loaded=args.assume_loaded)  # fmt: skip
 
 
 def cmd_plan_resume(args: argparse.Namespace) -> int:
@@ -472,7 +487,8 @@ def cmd_plan_resume(args: argparse.Namespace) -> int:
         return 0
     print(f"plan {state['name']}: {done} of {len(state['steps'])} step(s) done; resuming at "
           f"{nxt}", flush=True)  # fmt: skip
-    return execute(plan, state, _devices(args), assume_loaded=args.assume_loaded)
+    return execute(plan, state, _devices(args), ask=asker(args.prompt),
+                   assume_loaded=args.assume_loaded)  # fmt: skip
 
 
 def _device_args(s: argparse.ArgumentParser) -> None:
@@ -482,6 +498,9 @@ def _device_args(s: argparse.ArgumentParser) -> None:
     s.add_argument("--sensor-map", default="generic-rs485-laser", help="sensor register map")
     s.add_argument("--assume-loaded", action="store_true",
                    help="do not stop for load changes (the operator is not needed)")  # fmt: skip
+    s.add_argument("--prompt", choices=("auto", "gui", "terminal"), default="auto",
+                   help="load-change prompt: a dialog (gui), the terminal, or the dialog when "
+                   "a display is available (auto)")  # fmt: skip
 
 
 def add_commands(sub) -> None:

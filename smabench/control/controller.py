@@ -133,6 +133,7 @@ class Controller:
         self._pending_mode: str | None = None
         self._pending_gains: dict[str, PIDGains] = {}  # by law, applied at the next tick
         self._pending_open_a: float | None = None
+        self._open_set_now = False  # an explicit open-loop current arrived at this tick
         self._check_mode(mode)
         self._mode = mode
         self._entered = False  # first tick enters the initial mode bumplessly from 0 A
@@ -254,6 +255,7 @@ class Controller:
                 self._ffpid_track_gains = g
                 if self.ffpid_hold_gains is None:  # no scheduler: in use at once
                     self.ffpid.set_gains(g)
+        self._open_set_now = open_a is not None  # wins over the switch's held current
         if open_a is not None:
             self._open_current_a = open_a
         return mode
@@ -388,7 +390,7 @@ class Controller:
             self.mode_log.append((t_s, mode))
             if mode == "pid" and valid and not first:
                 self.pid.track(setpoint, position_mm, min(p_last, p_max))
-            if mode == "open_loop":
+            if mode == "open_loop" and not self._open_set_now:
                 self._open_current_a = self.last_current_a
         if mode == "open_loop":
             if self.open_loop is not None:

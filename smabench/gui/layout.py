@@ -15,6 +15,7 @@ from smabench.gui.plots import LoopPlot, TimePlots
 from smabench.gui.sessions_view import ReplayView
 from smabench.gui.specs import CONNECTION, FIT_CYCLE, OPEN_LOOP_CURRENT, mode_uses, shown
 from smabench.gui.state import IN_SESSION
+from smabench.gui.trends import TrendPlots
 from smabench.settings import GAIN_SETS, PROTOCOL_NAMES, Setting
 
 MODES = (("open_loop", "Open loop"), ("pid", "PID"), ("ff", "FF"), ("ffpid", "FF+PID"))
@@ -58,6 +59,8 @@ class WindowLayout:
         self.tabs.addTab(live, "Live")
         self.tabs.addTab(self._sessions_panel(), "Sessions")
         self.tabs.addTab(self.replay, "Replay (recorded)")
+        self.trend_plots = TrendPlots()
+        self.tabs.addTab(self.trend_plots, "Trends (per cycle)")
         split = QtWidgets.QSplitter()
         split.addWidget(self.settings_tabs)
         split.addWidget(self.tabs)

@@ -2,7 +2,8 @@
 
 :class:`RuntimeLink` starts the process, parses what it prints on a reader thread and queues it;
 the GUI drains :meth:`RuntimeLink.poll` from its timer. :class:`SampleBuffer` keeps the streamed
-samples in growable numpy columns (one hour at 200 Hz is 720 000 rows, ~40 MB).
+samples in bounded numpy columns: the newest 0.5–1 h at 200 Hz at full resolution, everything
+older as a min–max envelope (memory bounded whatever the session's length).
 """
 
 from __future__ import annotations
@@ -26,30 +27,95 @@ log = logging.getLogger(__name__)
 
 PLOT_COLUMNS = (
     "t_s", "current_set_A", "current_A", "position_mm", "setpoint_mm", "temperature_est_C",
-    "cycle",
+    "cycle", "temperature_C",
 )  # fmt: skip
+FULL_ROWS = 720_000
+"""Rows kept at full resolution by :class:`SampleBuffer` (1 h at 200 Hz)."""
+ENVELOPE_ROWS = 400_000
+"""Envelope rows (older data, min–max) before the envelope is folded 2:1."""
+FOLD = 16
+"""Full-resolution rows per envelope pair when the older half is folded."""
 _INDEX = {c: COLUMNS.index(c) for c in PLOT_COLUMNS}
 
 
 class SampleBuffer:
-    """Append-only float columns with amortised O(1) growth; read views with :meth:`column`."""
+    """Streamed samples in numpy columns, bounded: the newest ``full_rows`` at full resolution,
+    everything older as a min–max envelope.
 
-    def __init__(self, capacity: int = 4096) -> None:
+    Storage is one array, ``[envelope | full resolution]``; :meth:`column` is a view of both,
+    in time order. When the full-resolution part is full, its older half is folded into the
+    envelope: each block of ``fold`` rows becomes two rows holding, per column, the block's
+    minimum and maximum in the order they occurred (``t_s`` at the block's first and last
+    sample), which keeps every peak a time plot shows. When the envelope passes
+    ``envelope_rows`` it is folded 2:1 the same way. Memory is then at most
+    ``(full_rows + envelope_rows) × len(PLOT_COLUMNS) × 8`` bytes whatever the length (defaults:
+    ≈ 72 MB: between half an hour and an hour at 200 Hz whole, plus the envelope of everything
+    older).
+    """
+
+    def __init__(self, capacity: int = 4096, full_rows: int = FULL_ROWS,
+                 envelope_rows: int = ENVELOPE_ROWS, fold: int = FOLD) -> None:  # fmt: skip
         self._data = np.full((len(PLOT_COLUMNS), capacity), np.nan)
-        self.n = 0
+        self.full_rows = int(full_rows)
+        self.envelope_rows = int(envelope_rows)
+        self.fold = int(fold)
+        self.n = 0  # rows stored (envelope + full resolution)
+        self.full_start = 0  # index of the first full-resolution row
+        self.total = 0  # rows appended since the last clear
 
     def clear(self) -> None:
-        self.n = 0
+        self.n = self.full_start = self.total = 0
+
+    @property
+    def full_start_abs(self) -> int:
+        """The first full-resolution row, counted in rows appended since the last clear."""
+        return self.total - (self.n - self.full_start)
+
+    def index_of(self, abs_row: int) -> int:
+        """Storage index of an appended row (counted since clear), clamped to full resolution."""
+        return self.full_start + max(0, abs_row - self.full_start_abs)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._data.nbytes)
 
     def append_rows(self, rows: np.ndarray) -> None:
         """``rows``: (k, len(PLOT_COLUMNS)) array."""
         k = rows.shape[0]
+        if self.n - self.full_start + k > self.full_rows:
+            self._fold_full()
         if self.n + k > self._data.shape[1]:
-            grown = np.full((len(PLOT_COLUMNS), max(2 * self._data.shape[1], self.n + k)), np.nan)
+            size = max(2 * self._data.shape[1], self.n + k)
+            size = min(size, max(self.n + k, self.full_rows + self.envelope_rows + k))
+            grown = np.full((len(PLOT_COLUMNS), size), np.nan)
             grown[:, : self.n] = self._data[:, : self.n]
             self._data = grown
         self._data[:, self.n : self.n + k] = rows.T
         self.n += k
+        self.total += k
+
+    def _fold_full(self) -> None:
+        """The older half of the full-resolution rows → envelope (then the envelope 2:1 if it
+        is over its size)."""
+        d = self._data
+        n_full = self.n - self.full_start
+        take = (n_full // 2) // self.fold * self.fold
+        if take == 0:
+            return
+        env = _min_max(d[:, self.full_start : self.full_start + take], self.fold)
+        e0 = self.full_start
+        d[:, e0 : e0 + env.shape[1]] = env
+        e1 = e0 + env.shape[1]
+        rest = self.n - (self.full_start + take)
+        d[:, e1 : e1 + rest] = d[:, self.full_start + take : self.n]
+        self.full_start, self.n = e1, e1 + rest
+        if self.full_start > self.envelope_rows:
+            env = _min_max(d[:, : self.full_start - self.full_start % 4], 4)
+            tail = self.full_start % 4
+            keep = np.concatenate([env, d[:, self.full_start - tail : self.n]], axis=1)
+            d[:, : keep.shape[1]] = keep
+            self.full_start = env.shape[1] + tail
+            self.n = keep.shape[1]
 
     def append_columns(self, columns: dict[str, np.ndarray]) -> None:
         n = len(columns["t_s"])
@@ -61,6 +127,26 @@ class SampleBuffer:
 
     def column(self, name: str) -> np.ndarray:
         return self._data[PLOT_COLUMNS.index(name), : self.n]
+
+
+def _min_max(block: np.ndarray, fold: int) -> np.ndarray:
+    """(columns, m·fold) → (columns, 2m): per block of ``fold`` rows and per column, the
+    minimum and the maximum in the order they occurred (NaN-aware; an all-NaN block stays
+    NaN); ``t_s`` gets the block's first and last time."""
+    c, n = block.shape
+    b = block.reshape(c, n // fold, fold)
+    out = np.empty((c, n // fold, 2))
+    nan = np.isnan(b)
+    lo_i = np.argmin(np.where(nan, np.inf, b), axis=2)
+    hi_i = np.argmax(np.where(nan, -np.inf, b), axis=2)
+    lo = np.take_along_axis(b, lo_i[..., None], axis=2)[..., 0]
+    hi = np.take_along_axis(b, hi_i[..., None], axis=2)[..., 0]
+    first_lo = lo_i <= hi_i
+    out[..., 0] = np.where(first_lo, lo, hi)
+    out[..., 1] = np.where(first_lo, hi, lo)
+    t = PLOT_COLUMNS.index("t_s")
+    out[t, :, 0], out[t, :, 1] = b[t, :, 0], b[t, :, -1]
+    return out.reshape(c, -1)
 
 
 def parse_rows(lines: list[str]) -> np.ndarray:

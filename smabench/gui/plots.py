@@ -3,7 +3,13 @@
 pyqtgraph's auto-downsampling and clipToView assume increasing x, so on the loop (XY) plot they
 would draw nothing: each finished cycle is frozen as its own faded curve (thinned to at most
 ``LOOP_POINTS`` points once, when it finishes) and only the current cycle is redrawn. The time
-plots do use peak downsampling and clipToView.
+plots do use peak downsampling and clipToView. The loop plot keeps the last ``MAX_FROZEN``
+finished cycles (bounded however long the session runs); the per-cycle trends
+(:class:`TrendPlots`) show every cycle.
+
+Temperatures: the measured wire temperature ``temperature_C`` (a thermocouple, when the bench has
+one) is drawn beside the estimate ``temperature_est_C`` in the time plots, and the loop plot uses
+it instead of the estimate when it is present (its axis says which).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ from PySide6 import QtCore, QtWidgets
 from smabench.gui.link import SampleBuffer
 
 LOOP_POINTS = 600
+MAX_FROZEN = 300
 TIME_WINDOW_S = 120.0
 BRIGHT = (230, 90, 30)
 FADED = (120, 140, 180, 90)
@@ -48,8 +55,14 @@ def keep_range(plot, axis: str, lo: float, hi: float, pad: float = 0.08) -> None
         setter(lo - pad * span, hi + pad * span, padding=0)
 
 
+def has_measured(buf: SampleBuffer, start: int = 0) -> bool:
+    """Whether the buffer holds measured wire temperatures (``temperature_C``) from ``start``."""
+    return bool(np.isfinite(buf.column("temperature_C")[start:]).any())
+
+
 class LoopPlot(pg.PlotWidget):
-    """Position vs estimated temperature; finished cycles faded, the current one bright."""
+    """Position vs wire temperature (measured when present, else estimated); finished cycles
+    faded, the current one bright."""
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
@@ -67,9 +80,10 @@ class LoopPlot(pg.PlotWidget):
             QtWidgets.QGraphicsItem.CacheMode.DeviceCoordinateCache
         )
         self.frozen: list[tuple[np.ndarray, np.ndarray]] = []
-        self._cycle_start = 0
+        self._cycle_start = 0  # in rows appended since the buffer's clear (SampleBuffer.total)
         self._cycle = None
         self._bounds = None
+        self.measured = False  # x is the measured temperature (fixed once a cycle is frozen)
         self.disableAutoRange()
 
     def reset(self) -> None:
@@ -79,34 +93,44 @@ class LoopPlot(pg.PlotWidget):
         self.model_curve.setData([], [])
         self._cycle_start, self._cycle = 0, None
         self._bounds: tuple[float, float, float, float] | None = None
+        self._use_measured(False)
+
+    def _use_measured(self, on: bool) -> None:
+        self.measured = on
+        label_axis(self.plotItem, "bottom", "measured wire temperature" if on
+                   else "estimated wire temperature", "°C")  # fmt: skip
 
     def update_from(self, buf: SampleBuffer) -> None:
         n = buf.n
         if n == 0:
             return
-        temp, pos, cycle = (buf.column(c) for c in ("temperature_est_C", "position_mm", "cycle"))
+        start = buf.index_of(self._cycle_start)  # storage index (older rows may be folded)
+        if not self.frozen and not self.measured and has_measured(buf, start):
+            self._use_measured(True)
+        name = "temperature_C" if self.measured else "temperature_est_C"
+        temp, pos, cycle = (buf.column(c) for c in (name, "position_mm", "cycle"))
         if self._cycle is None:
-            self._cycle = cycle[0]
+            self._cycle = cycle[start]
         # freeze every cycle that has finished since the last frame
-        changes = np.nonzero(cycle[self._cycle_start : n] != self._cycle)[0]
+        changes = np.nonzero(cycle[start:n] != self._cycle)[0]
         froze = False
         while changes.size:
-            end = self._cycle_start + int(changes[0])
-            sel = thin(end - self._cycle_start, LOOP_POINTS)
-            self.frozen.append((temp[self._cycle_start : end][sel].copy(),
-                                pos[self._cycle_start : end][sel].copy()))  # fmt: skip
-            self._cycle_start, self._cycle = end, cycle[end]
-            changes = np.nonzero(cycle[self._cycle_start : n] != self._cycle)[0]
+            end = start + int(changes[0])
+            sel = thin(end - start, LOOP_POINTS)
+            self.frozen.append((temp[start:end][sel].copy(), pos[start:end][sel].copy()))
+            start, self._cycle = end, cycle[end]
+            changes = np.nonzero(cycle[start:n] != self._cycle)[0]
             froze = True
+        self._cycle_start = buf.total - (n - start)
         if froze:
+            del self.frozen[:-MAX_FROZEN]
             gap = np.array([np.nan])
             xs = np.concatenate([a for x, _ in self.frozen for a in (x, gap)])
             ys = np.concatenate([a for _, y in self.frozen for a in (y, gap)])
             self.frozen_item.setData(xs, ys, connect="finite")
-        sel = thin(n - self._cycle_start, 4 * LOOP_POINTS)
-        self.current.setData(temp[self._cycle_start : n][sel], pos[self._cycle_start : n][sel],
-                             connect="finite")  # fmt: skip
-        self._grow(temp[self._cycle_start : n], pos[self._cycle_start : n])
+        sel = thin(n - start, 4 * LOOP_POINTS)
+        self.current.setData(temp[start:n][sel], pos[start:n][sel], connect="finite")
+        self._grow(temp[start:n], pos[start:n])
 
     def _grow(self, temp: np.ndarray, pos: np.ndarray) -> None:
         """The view covers everything drawn so far (ranges kept from earlier cycles)."""
@@ -126,7 +150,8 @@ class LoopPlot(pg.PlotWidget):
 
 
 class TimePlots(pg.GraphicsLayoutWidget):
-    """Current (set, measured), estimated temperature, position and setpoint against time."""
+    """Current (set, measured), wire temperature (estimated; measured beside it when the bench
+    has a thermocouple), position and setpoint against time."""
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
@@ -151,6 +176,7 @@ class TimePlots(pg.GraphicsLayoutWidget):
         self.c_meas = self.p_current.plot(pen=pg.mkPen(BRIGHT, width=1), name="current measured")
         self.c_temp = self.p_temp.plot(pen=pg.mkPen((200, 40, 40), width=1),
                                        name="wire temperature (estimated)")
+        self.c_tmeas: pg.PlotDataItem | None = None  # added when measured values first arrive
         self.c_pos = self.p_pos.plot(pen=pg.mkPen((30, 90, 200), width=1), name="position")
         self.c_setpoint = self.p_pos.plot(pen=pg.mkPen((40, 160, 60), width=1), name="setpoint")
         self.follow = True
@@ -158,6 +184,9 @@ class TimePlots(pg.GraphicsLayoutWidget):
     def reset(self) -> None:
         for c in (self.c_set, self.c_meas, self.c_temp, self.c_pos, self.c_setpoint):
             c.setData([], [])
+        if self.c_tmeas is not None:
+            self.p_temp.removeItem(self.c_tmeas)
+            self.c_tmeas = None
 
     def update_from(self, buf: SampleBuffer) -> None:
         if buf.n == 0:
@@ -170,13 +199,20 @@ class TimePlots(pg.GraphicsLayoutWidget):
                             (self.c_temp, "temperature_est_C"), (self.c_pos, "position_mm"),
                             (self.c_setpoint, "setpoint_mm")):  # fmt: skip
             curve.setData(t, buf.column(name)[i0:], connect="finite")
+        if self.c_tmeas is None and has_measured(buf, i0):
+            self.c_tmeas = self.p_temp.plot(pen=pg.mkPen((120, 0, 120), width=1),
+                                            name="wire temperature (measured)")  # fmt: skip
+            self.c_tmeas.setDownsampling(auto=True, method="peak")
+            self.c_tmeas.setClipToView(True)
+        if self.c_tmeas is not None:
+            self.c_tmeas.setData(t, buf.column("temperature_C")[i0:], connect="finite")
         if self.follow:  # page the time axis every tenth of a window, not every frame
             x0, x1 = self.p_current.viewRange()[0]
             if t[-1] > x1 or t[-1] < x0:
                 right = t[-1] + 0.1 * TIME_WINDOW_S
                 self.p_current.setXRange(max(0.0, right - TIME_WINDOW_S), right, padding=0)
         for plot, names in ((self.p_current, ("current_set_A", "current_A")),
-                            (self.p_temp, ("temperature_est_C",)),
+                            (self.p_temp, ("temperature_est_C", "temperature_C")),
                             (self.p_pos, ("position_mm", "setpoint_mm"))):  # fmt: skip
             values = np.concatenate([buf.column(n)[i0:] for n in names])
             if np.isfinite(values).any():

@@ -141,8 +141,6 @@ def replay_columns(session) -> dict[str, np.ndarray]:
     """A loaded session's columns as the plots want them."""
     n = len(session)
     cols = {c: session.data[c] for c in session.data if c != "mode"}
-    if "temperature_est_C" not in cols and "temperature_C" in cols:
-        cols["temperature_est_C"] = cols["temperature_C"]
     if "t_s" not in cols:
         cols["t_s"] = np.arange(n, dtype=float)
     cols.setdefault("cycle", np.zeros(n))
@@ -225,7 +223,11 @@ def fit_session(folder: Path, model: str, cycle: int | None) -> dict[str, Any]:
             raise ValueError(f"this session has cycles 1 … {shown_cycle(finite.max())}, "
                              f"not {cycle}")  # fmt: skip
     sel = idx == chosen if finite.size else np.ones(idx.size, bool)
-    temp = np.asarray(cols["temperature_est_C"], float)[sel]
+    # the temperature the loop plot shows: measured when the session has it, else estimated
+    measured = np.asarray(cols.get("temperature_C", np.full(idx.size, np.nan)), float)
+    use_measured = bool(np.isfinite(measured).any())
+    source = "measured" if use_measured else "estimated"
+    temp = measured[sel] if use_measured else np.asarray(cols["temperature_est_C"], float)[sel]
     pos = np.asarray(cols["position_mm"], float)[sel]
     ok = np.isfinite(temp) & np.isfinite(pos)
     try:
@@ -234,7 +236,8 @@ def fit_session(folder: Path, model: str, cycle: int | None) -> dict[str, Any]:
         raise ValueError(f"the {model} model could not be fitted to cycle "
                          f"{shown_cycle(chosen)}: {exc}") from None  # fmt: skip
     lines = [f"{Path(folder).name}: model {fit.model} on cycle {shown_cycle(chosen)} "
-             f"({fit.n_points} points, {time.perf_counter() - t0:.1f} s)",
+             f"({fit.n_points} points, {source} temperature, "
+             f"{time.perf_counter() - t0:.1f} s)",
              f"rmse {fit.rmse_mm:.4f} mm   nrmse {fit.nrmse_percent:.3f} % of stroke   "
              f"ard {fit.ard_percent:.3f} %"]  # fmt: skip
     lines += [f"  {k} = {v:.6g}" for k, v in fit.parameters.items()]

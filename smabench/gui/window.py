@@ -43,11 +43,13 @@ from smabench.gui.specs import (
     stress_question,
 )
 from smabench.gui.state import IN_SESSION, NOT_CONNECTED, State, StateMachine, controls_for
+from smabench.gui.trends import CycleTail
 from smabench.settings import GAIN_COMPONENTS, GAIN_SETS, SettingError
 
 log = logging.getLogger(__name__)
 
 FRAME_MS = 33
+TREND_EVERY = 15  # frames between reads of the running session's cycles.csv (0.5 s)
 MODE_LABEL = dict(MODES)
 STATE_TEXT = {
     State.DISCONNECTED: "Not connected", State.CONNECTING: "Connecting …",
@@ -75,6 +77,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.session_folder: Path | None = None  # the running session's folder
         self.session_controller = False  # the running session has a controller
         self.buffer = SampleBuffer()
+        self.cycle_tail = CycleTail()  # the running (or last) session's per-cycle rows
+        self._frames = 0
         self.status: dict[str, Any] = {}
         self.last_end: dict[str, Any] | None = None
         self.last_error = ""
@@ -500,6 +504,11 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         if self.tabs.currentIndex() == 0 and self.buffer.n:
             self.loop_plot.update_from(self.buffer)
             self.time_plots.update_from(self.buffer)
+        self._frames += 1
+        if self.session_folder is not None and self._frames % TREND_EVERY == 0:
+            self.cycle_tail.read()
+        if self.tabs.currentWidget() is self.trend_plots:
+            self.trend_plots.update_from(self.cycle_tail)
         if self.buffer.n:
             sp = self.buffer.column("setpoint_mm")[-1]
             self.setpoint_label.setText(
@@ -538,6 +547,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             return
         if "started" in st:
             self.session_folder = Path(st["started"])
+            self.cycle_tail.reset(self.session_folder)
+            self.trend_plots.reset()
             self._paused_total_s, self._paused_at = 0.0, None
             if self._fresh_session:
                 self._clear_live()
@@ -634,6 +645,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         samples = f" {n} samples" if n is not None else ""
         text = (f"{head}{samples} saved in {folder}." if folder
                 else f"{head} Nothing was saved.")  # fmt: skip
+        self.cycle_tail.read()  # the last cycles, written when the session closed
         self.session_folder = None
         lost = words.device_lost(end.get("reason", ""))
         if self.state != State.ESTOPPED:

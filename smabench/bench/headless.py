@@ -33,8 +33,11 @@ EXIT_ABORTED = 1
 # --------------------------------------------------------------------------- smabench mock
 def cmd_mock(args: argparse.Namespace) -> int:
     """Serve the mock bench until SIGINT/SIGTERM (or stdin EOF with --control-stdin)."""
+    from smabench.bench.priority import raise_priority
     from smabench.drivers.mock.bench import MockBench
     from smabench.physics.effects import Effects
+
+    raise_priority()  # it stands in for a microcontroller and a sensor: host load slows neither
 
     try:  # the hanging load's range is the run setting's (a simulated wire needs no confirmation)
         settings_schema.check_value("load_kg", args.load_kg)
@@ -321,6 +324,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.port and not args.sensor:
         raise ValueError("--port needs --sensor (tcp:HOST:PORT or rtu:DEVICE[:BAUD])")
     settings = settings_from_args(args)  # everything checked before a device is opened
+    from smabench.bench.priority import raise_priority
+
+    raise_priority()  # the control loop (and the mock it starts) before other work
     stress = settings.stress()
     if stress.needs_confirmation:  # allowed with --allow-high-stress, else refused above
         print(f"note: {settings.load_kg:g} kg puts {stress.stress_mpa:.0f} MPa on the wire, "

@@ -33,7 +33,6 @@ import dataclasses
 import json
 import logging
 import math
-import os
 import queue
 import sys
 import threading
@@ -41,6 +40,7 @@ import time
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
+from smabench.bench.priority import raise_priority, realtime_loop_thread, realtime_process
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.drivers.protocol import Flag
 from smabench.protocols import Protocol
@@ -414,53 +414,6 @@ def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
         emit.line("Q", {"reason": "closed"})
         emit.close()
     return 0
-
-
-LOOP_NICE = -10
-
-
-def raise_priority(nice: int = LOOP_NICE) -> bool:
-    """Let the bench (this process and the mock it starts) win the CPU over the GUI's drawing.
-
-    Needs CAP_SYS_NICE (root); without it the loop runs at normal priority and this says so.
-    """
-    try:
-        os.setpriority(os.PRIO_PROCESS, 0, nice)
-        return True
-    except OSError as exc:
-        log.info("bench process stays at normal priority (%s)", exc)
-        return False
-
-
-LOOP_RT_PRIORITY = 20
-
-
-def realtime_loop_thread(priority: int = LOOP_RT_PRIORITY) -> bool:
-    """Real-time (SCHED_FIFO) scheduling for the calling thread, the control loop: it then
-    preempts drawing at once on every tick instead of within the scheduler's wakeup granularity.
-    The loop sleeps between ticks, and the kernel's RT throttling bounds it anyway. Needs
-    CAP_SYS_NICE; without it the thread stays as it was."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-        return True
-    except (OSError, AttributeError) as exc:
-        log.info("control loop stays at normal scheduling (%s)", exc)
-        return False
-
-
-def realtime_process(priority: int = LOOP_RT_PRIORITY // 2) -> int:
-    """SCHED_FIFO for every thread of this process (threads started later inherit it): the
-    loop shares the interpreter lock with the driver, status and stream threads, and one of
-    them preempted by the GUI while holding the lock would hold up the loop (priority
-    inversion). Returns how many threads were raised."""
-    raised = 0
-    for tid in os.listdir("/proc/self/task"):
-        try:
-            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
-            raised += 1
-        except (OSError, AttributeError, ValueError) as exc:
-            log.info("thread %s stays at normal scheduling (%s)", tid, exc)
-    return raised
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -60,7 +60,7 @@ class PIDGains:
 
 
 # Gains per load for the paper wire (55 mm, Ø 0.38 mm): grid searches on the offline closed
-# loop (``smabench.control.tuning``: the benchmark's four references on the nominal plant, the
+# loop (``smabench.bench.tuning``: the benchmark's four references on the nominal plant, the
 # lowest mean RMS error; each grid extended until its best point was inside it). The cost is
 # flat near the optimum (within ≈ 3 % for kd/kp ≈ 0.3–0.5 s at 2 kg), so neighbouring loads
 # can differ more than the physics does. Interpolated in load.
@@ -208,7 +208,7 @@ class RelayTuner:
     On the SMA wire this is a rough guide only: the oscillation is set by the hysteresis gap
     (the wire sits in the gap for most of each half cycle and moves ≈ 0.02 mm), not by a linear
     phase crossover, so on the offline loop the proposals change by 1.5–2× with the relay step
-    and come out 2–3× above the grid-search gains of :mod:`smabench.control.tuning`, which
+    and come out 2–3× above the grid-search gains of :mod:`smabench.bench.tuning`, which
     are the ones in the per-load tables.
     """
 

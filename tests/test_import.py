@@ -86,7 +86,8 @@ def test_voltage_driven_data_imports(tmp_path):
     assert np.allclose(load_session(out).data["voltage_V"], v)
 
 
-def test_bad_files_are_one_clear_error(tmp_path, run_cli):
+def test_bad_files_are_one_clear_error(tmp_path, cli_in_process):
+    run_cli = cli_in_process
     src = tmp_path / "bad.csv"
     src.write_text("a,b\n1,2\nthree,4\n")
     with pytest.raises(TextImportError, match="no table|line 3"):
@@ -102,7 +103,8 @@ def test_bad_files_are_one_clear_error(tmp_path, run_cli):
     assert not (tmp_path / "s3").exists()
 
 
-def test_preview_prints_the_layout(tmp_path, run_cli):
+def test_preview_prints_the_layout(tmp_path, cli_in_process):
+    run_cli = cli_in_process
     src = tmp_path / "raw.csv"
     src.write_text(RAW_EXPORT)
     proc = run_cli("import", str(src), "--preview")
@@ -111,6 +113,7 @@ def test_preview_prints_the_layout(tmp_path, run_cli):
     assert "data from line 5" in proc.stdout
 
 
+@pytest.mark.slow  # two exports of > 30 000 rows
 @pytest.mark.skipif(not SHARED.is_dir(), reason="shared measured data not beside the repo")
 def test_the_measured_raw_exports_import(tmp_path):
     """Another lab's raw exports as the testing machine wrote them (shared/data)."""

@@ -19,16 +19,24 @@ def _ramp(*points_c: float, per_k: float = 2.0) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def _fit(f) -> tuple[PreisachModel, np.ndarray, np.ndarray]:
+    d = np.loadtxt(f)
+    t, y = d[:, 0], -d[:, 1] * 55.0
+    return PreisachModel.fit(t, y), t, y
+
+
 @pytest.fixture(scope="module")
-def fitted() -> list[tuple[PreisachModel, np.ndarray, np.ndarray]]:
-    out = []
-    for f in flexinol_files():
-        d = np.loadtxt(f)
-        t, y = d[:, 0], -d[:, 1] * 55.0
-        out.append((PreisachModel.fit(t, y), t, y))
-    return out
+def first_fit() -> tuple[PreisachModel, np.ndarray, np.ndarray]:
+    """The first measured loop, fitted (the unit tier's model: one fit, not every load)."""
+    return _fit(flexinol_files()[0])
 
 
+@pytest.fixture(scope="module")
+def fitted(first_fit) -> list[tuple[PreisachModel, np.ndarray, np.ndarray]]:
+    return [first_fit] + [_fit(f) for f in flexinol_files()[1:]]
+
+
+@pytest.mark.slow  # fits every measured load (several seconds on a busy machine)
 def test_fits_measured_loops_within_target(fitted):
     for model, t, y in fitted:
         nrmse = 100 * np.sqrt(np.mean((model.predict(t) - y) ** 2)) / np.ptp(y)
@@ -37,15 +45,15 @@ def test_fits_measured_loops_within_target(fitted):
         assert np.all(model.weights_mm >= 0)
 
 
-def test_online_stepper_matches_vectorised(fitted):
-    model, t, _ = fitted[0]
+def test_online_stepper_matches_vectorised(first_fit):
+    model, t, _ = first_fit
     rng = np.random.default_rng(3)
     path = np.concatenate([t, 30 + 110 * rng.random(300), _ramp(40, 120, 70, 100, 80, 140)])
     assert np.allclose(PreisachStepper(model).run(path), model.predict(path), atol=1e-12)
 
 
-def test_wiping_out_and_return_point_memory(fitted):
-    model, _, _ = fitted[0]
+def test_wiping_out_and_return_point_memory(first_fit):
+    model, _, _ = first_fit
     direct = model.predict(_ramp(30, 140, 50))
     # the inner excursion 70 → 100 → 60 is wiped out by the next maximum at 140
     detour = model.predict(_ramp(30, 140, 70, 100, 60, 140, 50))

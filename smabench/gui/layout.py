@@ -252,6 +252,8 @@ class WindowLayout:
         self.mock_effect = QtWidgets.QLineEdit()
         self.mock_effect.setPlaceholderText("e.g. latent_heat=24000 (optional)")
         form.addRow("plant effect", self.mock_effect)
+        self.mock_thermocouple = QtWidgets.QCheckBox("thermocouple on the wire (measured °C)")
+        form.addRow(self.mock_thermocouple)
         self.serial_port = NoWheelCombo()
         self.serial_port.setEditable(True)
         refresh = QtWidgets.QPushButton("↻")
@@ -365,6 +367,7 @@ class WindowLayout:
         f = self.connection_form
         f.setRowVisible(self.mock_speed, mock)
         f.setRowVisible(self.mock_effect, mock)
+        f.setRowVisible(self.mock_thermocouple, mock)
         for wdg in (self.port_row, self.sensor_kind, self.sensor_unit, self.sensor_map):
             f.setRowVisible(wdg, not mock)
         for wdg in (self.sensor_host, self.sensor_tcp_port):

@@ -137,7 +137,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                 f.setEnabled(c.connection_fields)
             elif not f.setting.live:
                 f.setEnabled(c.session_fields)
-        for wdg in (self.use_mock, self.use_real, self.mock_effect, self.port_row,
+        for wdg in (self.use_mock, self.use_real, self.mock_effect, self.mock_thermocouple,
+                    self.port_row,
                     self.sensor_kind, self.sensor_host, self.sensor_rtu_port, self.sensor_baud,
                     self.sensor_map):  # fmt: skip
             wdg.setEnabled(c.connection_fields)
@@ -168,6 +169,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             args = ["--load-kg", f"{self.load_field.value():g}", "--speed", f"{speed:g}"]
             for effect in filter(None, (e.strip() for e in self.mock_effect.text().split(","))):
                 args += ["--effect", effect]
+            if self.mock_thermocouple.isChecked():
+                args += ["--thermocouple"]
             return {"mock": args, "time_scale": speed}
         if self.sensor_kind.currentText() == "TCP":
             host = self.sensor_host.text().strip()

@@ -381,3 +381,29 @@ def test_gui_runtime_scales_the_setpoint_lease_with_the_mock_speed(monkeypatch):
     assert cfg["time_scale"] == 8.0 and cfg["mock"][cfg["mock"].index("--speed") + 1] == "8"
     assert headless.open_devices is remote.open_devices
     win.close()
+
+
+def test_replay_draws_a_recorded_measured_temperature_and_fits_on_it():
+    """A recorded session with temperature_C: replay plots it beside the estimate (not in its
+    place) and the loop uses it."""
+    from types import SimpleNamespace
+
+    from smabench.gui.sessions_view import ReplayView, replay_columns
+
+    make_app()
+    rows = rows_for(np.arange(6000) / RATE_HZ)
+    data = {c: rows[:, k] for k, c in enumerate(PLOT_COLUMNS)}
+
+    class Session(SimpleNamespace):
+        def __len__(self) -> int:
+            return 6000
+
+    s = Session(data=data, meta={"load_kg": 2.0, "status": "completed"})
+    cols = replay_columns(s)
+    assert np.array_equal(cols["temperature_est_C"], data["temperature_est_C"])
+    view = ReplayView()
+    view.show_session("/tmp/x", s, None)
+    assert view.loop_plot.measured
+    est = view.time_plots.c_temp.getData()[1]
+    meas = view.time_plots.c_tmeas.getData()[1]
+    assert np.allclose(est - meas, 3.0)

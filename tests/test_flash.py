@@ -292,6 +292,7 @@ DEBIAN_OPTIBOOT = OLD_NANO_HEX.parents[1] / "optiboot" / "optiboot_atmega328.hex
 
 
 @pytest.mark.emulator
+@pytest.mark.slow  # starts the emulator
 @requires_emulator
 def test_debians_optiboot_overflows_the_chip_and_ours_fits():
     """Debian rebuilds optiboot with its avr-gcc: 532 B from 0x7E00, past the 32 KB flash. The

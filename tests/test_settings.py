@@ -101,7 +101,10 @@ def test_every_setting_is_declared_completely():
 def test_every_range_is_enforced_with_a_message_naming_setting_value_and_range(s):
     for v in inside(s):
         value = (v,) if s.kind == "floats" else v
-        assert S.check_value(s.key, value) is not None
+        got = S.check_value(s.key, value)
+        if s.kind == "floats":
+            got, value = list(got), list(value)
+        assert got == pytest.approx(value), (s.key, value, got)  # accepted, and kept as given
     for v in [*outside(s), math.nan, math.inf]:
         value = (v,) if s.kind == "floats" else v
         with pytest.raises(S.SettingError) as err:
@@ -327,6 +330,7 @@ def _assert_one_line_exit_2(proc, *needles):
         assert n in lines[0], lines[0]
 
 
+@pytest.mark.slow  # a `smabench run` subprocess: the path a user meets (in process: below)
 def test_high_stress_needs_the_flag_on_the_command_line(run_cli, tmp_path):
     proc = run_cli("run", "--port", "/nonexistent/tty", "--sensor", "tcp:127.0.0.1:1",
                    "--load-kg", "3", "--out", tmp_path)  # fmt: skip

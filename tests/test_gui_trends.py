@@ -65,6 +65,8 @@ def test_buffer_stays_bounded_keeps_the_recent_rows_whole_and_every_peak():
     assert buf.column("temperature_est_C").min() == -7.0
     buf.clear()
     assert buf.n == buf.total == 0
+    buf.append_rows(rows)  # a replay: all at once, still bounded
+    assert buf.total == t.size and buf.n <= 3000 and buf.column("position_mm").max() == 9.5
 
 
 def test_loop_plot_freezes_cycles_across_folds_and_keeps_a_bounded_number():

@@ -80,8 +80,13 @@ class SampleBuffer:
         return int(self._data.nbytes)
 
     def append_rows(self, rows: np.ndarray) -> None:
-        """``rows``: (k, len(PLOT_COLUMNS)) array."""
+        """``rows``: (k, len(PLOT_COLUMNS)) array (a long one, a replay, in bounded pieces)."""
         k = rows.shape[0]
+        step = max(1, self.full_rows // 4)
+        if k > step:
+            for a in range(0, k, step):
+                self.append_rows(rows[a : a + step])
+            return
         if self.n - self.full_start + k > self.full_rows:
             self._fold_full()
         if self.n + k > self._data.shape[1]:

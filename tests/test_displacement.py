@@ -493,7 +493,7 @@ def test_rtu_float32(pty_pair):
 
 @pytest.mark.slow  # real request timeouts: about a second or more on a busy machine
 def test_rtu_bad_crc_timeout_and_exception(rtu_server):
-    t = 0.25  # a generous timeout: a loaded machine must not turn a good answer into a late one
+    t = 0.5  # a generous timeout: a loaded machine must not turn a good answer into a late one
     rtu_server.set_position_mm(1.0)
     with rtu_sensor(rtu_server, retries=1, timeout_s=t) as s:
         rtu_server.corrupt_responses(count=2)
@@ -521,11 +521,12 @@ def test_rtu_bad_crc_timeout_and_exception(rtu_server):
 @pytest.mark.slow  # a server process restarted: about a second or more on a busy machine
 def test_rtu_server_dies_and_comes_back(rtu_server):
     rtu_server.set_position_mm(5.0)
-    with rtu_sensor(rtu_server, retries=1) as s:
+    t = 0.5  # pty, socat and a server thread between: room for a loaded machine
+    with rtu_sensor(rtu_server, retries=1, timeout_s=t) as s:
         assert s.read().ok
         rtu_server.stop()  # the line stays, nobody answers
-        samples = [bounded(s.read_or_flag, limit_s=2 * T + 0.3)[0] for _ in range(3)]
-        assert all(x.flags == FLAG_TIMEOUT for x in samples)
+        samples = [bounded(s.read_or_flag, limit_s=2 * t + 0.3)[0] for _ in range(3)]
+        assert all(x.flags == FLAG_TIMEOUT for x in samples), [x.flags for x in samples]
         rtu_server.start()
         assert poll(lambda: (x := s.read_or_flag()).ok and x).position_mm == pytest.approx(5.0)
 

@@ -409,3 +409,23 @@ def test_replay_draws_a_recorded_measured_temperature_and_fits_on_it():
     est = view.time_plots.c_temp.getData()[1]
     meas = view.time_plots.c_tmeas.getData()[1]
     assert np.allclose(est - meas, 3.0)
+
+
+def test_bench_gui_tiles_a_simulated_hour_into_a_long_session(tmp_path):
+    """`bench gui --hours 24` feeds repeats of one simulated span with time and cycles carried
+    on, and the trends read the matching cycles.csv."""
+    from smabench.gui.bench_gui import TiledRows, write_cycles_csv
+
+    span = rows_for(np.arange(int(100 * RATE_HZ)) / RATE_HZ)  # 100 s, 10 cycles of 10 s
+    tiles = TiledRows(span)
+    assert tiles.cycles == 10 and tiles.span_s == pytest.approx(100.0)
+    rows = tiles.rows(15_000, 45_000)  # across two repeat boundaries
+    t = rows[:, PLOT_COLUMNS.index("t_s")]
+    c = rows[:, PLOT_COLUMNS.index("cycle")]
+    np.testing.assert_allclose(np.diff(t), 1 / RATE_HZ)
+    assert np.all(np.diff(c) >= 0) and c[0] == 7 and c[-1] == 22
+    n = write_cycles_csv(tmp_path, tiles, 45_000)
+    tail = CycleTail(tmp_path)
+    assert tail.read() == n == 22  # cycles 0 … 21 finished, the 23rd running
+    np.testing.assert_array_equal(tail.column("cycle"), np.arange(22))
+    np.testing.assert_allclose(tail.column("t_start_s"), 10.0 * np.arange(22))

@@ -220,6 +220,7 @@ def test_live_session_with_a_thermocouple_plots_measured_and_trends(qtbot, tmp_p
     # the thermocouple follows the wire: peaks within 15 K of the estimate's
     assert abs(np.nanmax(t_meas) - np.nanmax(t_est)) < 15.0
     assert win.loop_plot.measured
+    assert "wire (measured)" in win.readout.text()  # the readout names both temperatures
     # the finished cycles reached the trends (cycles.csv written live by the session)
     assert win.cycle_tail.n >= 2
     assert np.all(np.isfinite(win.cycle_tail.column("temperature_max_C")))

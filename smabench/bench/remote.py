@@ -339,18 +339,21 @@ class BenchServer:
         return st
 
     def readout(self) -> dict[str, float | None]:
-        """Latest current (A), position (mm), temperature estimate (°C), ambient (°C): from the
-        session's last sample while running, else from the telemetry and one sensor read."""
+        """Latest current (A), position (mm), temperature estimate (°C), measured wire
+        temperature (°C, a thermocouple; None without one), ambient (°C): from the session's last
+        sample while running, else from the telemetry and one sensor read."""
         tel = self.source.latest()
         out: dict[str, float | None] = {
             "current_a": tel.current_a if tel is not None else None,
             "ambient_c": tel.ambient_c if tel is not None else None,
             "position_mm": None, "temperature_c": None,
+            "temperature_measured_c": getattr(tel, "thermocouple_c", None),
         }  # fmt: skip
         if self.running:
             row = self.last_row
             out.update(position_mm=row.get("position_mm"),
-                       temperature_c=row.get("temperature_est_C"))  # fmt: skip
+                       temperature_c=row.get("temperature_est_C"),
+                       temperature_measured_c=row.get("temperature_C"))  # fmt: skip
         elif self._idle_lock.acquire(timeout=0.05):
             try:
                 if not self._starting and not self.running:

@@ -590,7 +590,10 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.readout.setText(
             f"current {fmt(r.get('current_a'), '.3f')} A · position "
             f"{fmt(r.get('position_mm'), '.3f')} mm · wire (estimated) "
-            f"{fmt(r.get('temperature_c'), '.1f')} °C · ambient {fmt(r.get('ambient_c'), '.1f')}"
+            f"{fmt(r.get('temperature_c'), '.1f')} °C"
+            + ("" if r.get("temperature_measured_c") is None
+               else f" · wire (measured) {r['temperature_measured_c']:.1f} °C")
+            + f" · ambient {fmt(r.get('ambient_c'), '.1f')}"
             f" °C · law {MODE_LABEL.get(mode, 'open loop') if st.get('running') else '–'}"
         )
         if st.get("running") and mode:

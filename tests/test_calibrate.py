@@ -164,7 +164,9 @@ def _held(port: str, currents, truth) -> list[tuple[float, float]]:
     """(device reading, wire current) at each setpoint once settled (200 ms device time), the
     setpoint renewed meanwhile (:class:`~smabench.calibrate.HeldCurrent`)."""
     out = []
-    with CurrentSource(port, lease_s=cal.LEASE_S) as cs:
+    # (a host timeout of 1 s: this measures readings, and a busy machine can hold the driver's
+    # keepalive thread past the default 0.25 s)
+    with CurrentSource(port, lease_s=cal.LEASE_S, host_timeout_s=1.0) as cs:
         for i in currents:
             with cal.HeldCurrent(cs, i, settle_s=0.2) as held:
                 assert held.wait_span(0.1, timeout_s=10.0), held.measurement()

@@ -204,6 +204,7 @@ def test_raw_exports_several_cycles(tmp_path):
     assert "Flags" in (tmp_path / "rep" / "report.md").read_text() or not doc["flags"]
 
 
+@pytest.mark.slow
 def test_assumed_defaults_are_stated(tmp_path, capsys):
     """No wire length, diameter or load given: each assumption on stderr and at the top of
     the report, and in the JSON."""

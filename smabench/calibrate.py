@@ -714,8 +714,10 @@ def _prompt_meter(input_fn: Callable[[str], str], out: Any) -> MeterFn:
 
 
 def _connect(port: str) -> Any:
+    from smabench.bench.priority import raise_priority
     from smabench.drivers.current_source import CurrentSource, CurrentSourceError
 
+    raise_priority()  # it renews the lease while the operator reads the meter: as the bench loop
     cs = CurrentSource(port, lease_s=LEASE_S)
     try:
         cs.connect()

@@ -17,6 +17,18 @@ FLEXINOL_DIR = Path(
 SHARED_FLEXINOL_DIR = REPO.parent / "shared" / "data" / "flexinol-isobaric"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def bench_priority():
+    """Run the tests at the bench's own priority (smabench.bench.priority, as `smabench run`,
+    `smabench mock` and the GUI's runtime do): tests that host a mock bench in-process, or start
+    one, then see the devices they stand in for unslowed by unrelated load, as real devices are.
+    Where the system refuses (no CAP_SYS_NICE), the tests run at normal priority."""
+    from smabench.bench.priority import raise_priority
+
+    raise_priority()
+    yield
+
+
 def flexinol_files() -> list[Path]:
     """The shipped measured loops plus any other load of the same wire in the shared folder."""
     files = {f.name: f for f in FLEXINOL_DIR.glob("filtered_data_*.txt")}

@@ -13,6 +13,7 @@ import json
 import logging
 import multiprocessing
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -38,9 +39,10 @@ WORKER_NICE = 19  # the lowest: a fit must not take CPU from the bench or the GU
 
 
 def _lower_priority() -> None:
-    """Worker process initializer: computations yield the CPU to the GUI and the bench."""
+    """Lowest priority for the calling thread (Linux: nice is per thread, and a process started
+    from this thread inherits it): computations yield the CPU to the GUI and the bench."""
     with contextlib.suppress(OSError, AttributeError):
-        os.nice(WORKER_NICE)
+        os.setpriority(os.PRIO_PROCESS, 0, WORKER_NICE)
 
 
 class Jobs:
@@ -52,6 +54,7 @@ class Jobs:
     def __init__(self, workers: int = 2) -> None:
         self.pool = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="gui-job")
         self._procs: concurrent.futures.ProcessPoolExecutor | None = None
+        self._procs_lock = threading.Lock()
         self.pending: list[tuple[concurrent.futures.Future, Callable, Callable]] = []
 
     def submit(self, fn: Callable[[], Any], done: Callable[[Any], None],
@@ -62,18 +65,24 @@ class Jobs:
 
     def compute(self, fn: Callable[..., Any], args: tuple, done: Callable[[Any], None],
                 failed: Callable[[BaseException], None]) -> concurrent.futures.Future:  # fmt: skip
-        """``fn(*args)`` in the worker process (``fn`` and ``args`` picklable)."""
-        if self._procs is None:  # spawned, not forked: the GUI process has threads
-            self._procs = concurrent.futures.ProcessPoolExecutor(
-                1, mp_context=multiprocessing.get_context("spawn"), initializer=_lower_priority
-            )
-        fut = self._procs.submit(fn, *args)
-        # lowered from here too: the initializer only runs after the worker's start-up imports
-        for pid in list(getattr(self._procs, "_processes", None) or {}):
-            with contextlib.suppress(OSError):
-                os.setpriority(os.PRIO_PROCESS, pid, WORKER_NICE)
-        self.pending.append((fut, done, failed))
-        return fut
+        """``fn(*args)`` in the worker process (``fn`` and ``args`` picklable).
+
+        Submitted from a job thread at the lowest priority: the worker is spawned from that
+        thread, so even its start-up (a new interpreter importing numpy and scipy) runs at the
+        lowest priority and cannot take the CPU from the bench or the GUI."""
+
+        def in_worker() -> Any:
+            _lower_priority()  # this job thread, and the worker process it may spawn
+            with self._procs_lock:
+                if self._procs is None:  # spawned, not forked: the GUI process has threads
+                    self._procs = concurrent.futures.ProcessPoolExecutor(
+                        1, mp_context=multiprocessing.get_context("spawn"),
+                        initializer=_lower_priority,
+                    )  # fmt: skip
+                procs = self._procs
+            return procs.submit(fn, *args).result()
+
+        return self.submit(in_worker, done, failed)
 
     @property
     def busy(self) -> bool:

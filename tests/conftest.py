@@ -77,3 +77,9 @@ def cli_in_process(capsys):
         return proc
 
     return run
+
+
+@pytest.fixture
+def cli(cli_in_process):
+    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
+    return cli_in_process

@@ -22,25 +22,6 @@ KEYS = ("As_C", "Af_C", "Ms_C", "Mf_C")
 # README beside the data) makes the wire 100 / 0.418 ≈ 239 mm long
 RAW_GAUGE_MM = 100.0 * 0.10769 / 0.045
 
-@pytest.fixture
-def cli(capsys):
-    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
-    from types import SimpleNamespace
-
-    from smabench.cli import main
-
-    def run(*args, check: bool = False):
-        capsys.readouterr()
-        code = main([str(a) for a in args])
-        out, err = capsys.readouterr()
-        if check:
-            assert code == 0, err
-        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
-
-    return run
-
-
-
 def _known(br: Branches) -> list[float]:
     return [br.As, br.Af, br.Ms, br.Mf]
 

@@ -54,25 +54,6 @@ inner_heat_s = 0.5
 inner_cool_s = 1.5
 """
 
-@pytest.fixture
-def cli(capsys):
-    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
-    from types import SimpleNamespace
-
-    from smabench.cli import main
-
-    def run(*args, check: bool = False):
-        capsys.readouterr()
-        code = main([str(a) for a in args])
-        out, err = capsys.readouterr()
-        if check:
-            assert code == 0, err
-        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
-
-    return run
-
-
-
 def _plan(tmp_path: Path, text: str = PLAN) -> Path:
     p = tmp_path / "plan.toml"
     p.write_text(text.replace("{out}", str(tmp_path / "out")))

@@ -17,25 +17,6 @@ from smabench.sessions import (
 )
 
 
-@pytest.fixture
-def cli(capsys):
-    """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
-    from types import SimpleNamespace
-
-    from smabench.cli import main
-
-    def run(*args, check: bool = False):
-        capsys.readouterr()
-        code = main([str(a) for a in args])
-        out, err = capsys.readouterr()
-        if check:
-            assert code == 0, err
-        return SimpleNamespace(returncode=code, stdout=out, stderr=err)
-
-    return run
-
-
-
 def test_writer_header_order_and_roundtrip(tmp_path):
     folder = tmp_path / "s1"
     with SessionWriter(folder, {"load_kg": 2.0}) as w:

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from smabench.argtypes import positive
 from smabench.drivers import protocol as p
 
 log = logging.getLogger(__name__)
@@ -938,16 +939,6 @@ def cmd_sensor_read(args: argparse.Namespace, *, out: Any = None) -> int:
     return 0
 
 
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return v
-
-
 def _store_option(s: argparse.ArgumentParser) -> None:
     s.add_argument(
         "--calibration",
@@ -978,13 +969,13 @@ def add_commands(sub: Any) -> None:
         "--readings",
         help="the meter's readings at those currents, A (scripted; else asked for on stdin)",
     )
-    s.add_argument("--settle-s", type=_positive, default=0.3, help="settling per step, s (0.3)")
+    s.add_argument("--settle-s", type=positive(), default=0.3, help="settling per step, s (0.3)")
     s.add_argument(
-        "--average-s", type=_positive, default=0.5, help="device readings averaged, s (0.5)"
+        "--average-s", type=positive(), default=0.5, help="device readings averaged, s (0.5)"
     )
     s.add_argument(
         "--max-hold-s",
-        type=_positive,
+        type=positive(),
         default=20.0,
         help="longest a current stays on while you read, s (20; less when the device's heat "
         "budget says so)",
@@ -994,8 +985,8 @@ def add_commands(sub: Any) -> None:
 
     s = csub.add_parser("wire", help="cold resistance of the wire (clamps, Kelvin sense leads)")
     s.add_argument("--port", required=True, help="current driver serial port")
-    s.add_argument("--wire-length-mm", type=_positive, required=True, help="between the clamps")
-    s.add_argument("--wire-diameter-mm", type=_positive, required=True, help="wire diameter")
+    s.add_argument("--wire-length-mm", type=positive(), required=True, help="between the clamps")
+    s.add_argument("--wire-diameter-mm", type=positive(), required=True, help="wire diameter")
     s.add_argument(
         "--wire-preset",
         choices=sorted(PRESETS),
@@ -1003,12 +994,12 @@ def add_commands(sub: Any) -> None:
         help="material: resistivity, heat balance",
     )
     s.add_argument(
-        "--current-a", type=_positive, default=WIRE_CURRENT_A, help="measuring current, A (0.2)"
+        "--current-a", type=positive(), default=WIRE_CURRENT_A, help="measuring current, A (0.2)"
     )
-    s.add_argument("--average-s", type=_positive, default=1.0, help="averaged, s (1)")
+    s.add_argument("--average-s", type=positive(), default=1.0, help="averaged, s (1)")
     s.add_argument(
         "--tolerance-pct",
-        type=_positive,
+        type=positive(),
         default=WIRE_TOLERANCE * 100,
         help="refuse a resistance further off length x resistivity, %% (30)",
     )
@@ -1030,14 +1021,14 @@ def add_commands(sub: Any) -> None:
         s.add_argument("--sensor", required=True, help="tcp:HOST:PORT or rtu:DEV[:BAUD]")
         s.add_argument("--sensor-map", default="generic-rs485-laser", help="register map")
         s.add_argument(
-            "--duration-s", type=_positive, default=TARE_DURATION_S, help="reading time, s (1)"
+            "--duration-s", type=positive(), default=TARE_DURATION_S, help="reading time, s (1)"
         )
         if name == "read":
             s.add_argument("--absolute", action="store_true", help="without the tare")
         else:
             s.add_argument(
                 "--max-std-mm",
-                type=_positive,
+                type=positive(),
                 default=TARE_MAX_STD_MM,
                 help=f"refuse when the readings scatter more, mm ({TARE_MAX_STD_MM:g})",
             )

@@ -10,10 +10,12 @@ import argparse
 import logging
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+
+from smabench.argtypes import positive
 
 log = logging.getLogger("smabench")
 
@@ -40,19 +42,6 @@ def _write_json_atomic(path: str | Path, obj: object) -> None:
     from smabench.sessions import atomic_write_json
 
     atomic_write_json(path, obj)
-
-
-def _positive(kind: type = float) -> Callable[[str], float]:
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if not v > 0:
-            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-        return v
-
-    return parse
 
 
 # --------------------------------------------------------------------------- import
@@ -309,9 +298,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--preview", action="store_true", help="print the layout found and stop")
     s.add_argument("--decimal", choices=[".", ","], help="decimal mark (default: detected)")
-    s.add_argument("--wire-length-mm", type=_positive(), help="wire length, mm (strain → mm)")
-    s.add_argument("--wire-diameter-mm", type=_positive(), help="wire diameter, mm (metadata)")
-    s.add_argument("--load-kg", type=_positive(), help="hanging load, kg (metadata)")
+    s.add_argument("--wire-length-mm", type=positive(), help="wire length, mm (strain → mm)")
+    s.add_argument("--wire-diameter-mm", type=positive(), help="wire diameter, mm (metadata)")
+    s.add_argument("--load-kg", type=positive(), help="hanging load, kg (metadata)")
     s.add_argument("--out", help="session folder to create (must not exist)")
     s.set_defaults(func=cmd_import)
 
@@ -321,10 +310,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate heating cycles on the plant into a session")
     s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
-    s.add_argument("--cycles", type=_positive(int), default=5, help="number of cycles (5)")
+    s.add_argument("--cycles", type=positive(int), default=5, help="number of cycles (5)")
     s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
-    s.add_argument("--heat-s", type=_positive(), default=4.0, help="heating time per cycle, s")
-    s.add_argument("--cool-s", type=_positive(), default=10.0, help="cooling time per cycle, s")
+    s.add_argument("--heat-s", type=positive(), default=4.0, help="heating time per cycle, s")
+    s.add_argument("--cool-s", type=positive(), default=10.0, help="cooling time per cycle, s")
     s.add_argument(
         "--kind",
         choices=["complete", "incomplete", "inner"],
@@ -339,7 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="switch on a plant effect (repeatable); see --list-effects",
     )
     s.add_argument("--list-effects", action="store_true", help="list the plant effects and exit")
-    s.add_argument("--rate-hz", type=_positive(), default=100.0, help="recording rate, Hz (100)")
+    s.add_argument("--rate-hz", type=positive(), default=100.0, help="recording rate, Hz (100)")
     s.add_argument("--noise-mm", type=float, default=0.002, help="sensor noise std, mm")
     s.add_argument("--seed", type=int, default=0, help="noise seed")
     s.add_argument(
@@ -355,8 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
         "demo", help="headless demo: cycles on the mock bench, a session, fits and a loop PNG"
     )
     s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (2)")
-    s.add_argument("--cycles", type=_positive(int), default=3, help="heating cycles (3)")
-    s.add_argument("--speed", type=_positive(), default=5.0, help="mock bench speed, × (5)")
+    s.add_argument("--cycles", type=positive(int), default=3, help="heating cycles (3)")
+    s.add_argument("--speed", type=positive(), default=5.0, help="mock bench speed, × (5)")
     s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
     s.add_argument("--out", default="sessions", help="parent folder (./sessions)")
     s.set_defaults(func=cmd_demo)
@@ -398,7 +387,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     b.set_defaults(func=cmd_bench_model)
     b = bsub.add_parser("loop", help="bench loop rate and jitter against the mock bench")
-    b.add_argument("--duration-s", type=_positive(), default=60.0, help="per run, s (60)")
+    b.add_argument("--duration-s", type=positive(), default=60.0, help="per run, s (60)")
     b.add_argument("--rates", default="200,500", help="loop rates, Hz (200,500)")
     b.add_argument(
         "--firmware", default="python,emulated", help="current drivers to use (python,emulated)"
@@ -417,8 +406,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument(
         "--firmware", choices=["emulated", "python"], default="emulated", help="current driver"
     )
-    b.add_argument("-n", type=_positive(int), default=500, help="requests per figure (500)")
-    b.add_argument("--telemetry-s", type=_positive(), default=5.0, help="telemetry count, s")
+    b.add_argument("-n", type=positive(int), default=500, help="requests per figure (500)")
+    b.add_argument("--telemetry-s", type=positive(), default=5.0, help="telemetry count, s")
     b.set_defaults(func=cmd_bench_link)
     from smabench.analysis.bench import add_bench_analyze
     from smabench.bench.control_bench import add_bench_control
@@ -430,7 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_bench_characterize(bsub)
 
-    add_bench_gui(bsub, _positive())
+    add_bench_gui(bsub, positive())
     return p
 
 

@@ -12,16 +12,7 @@ import time
 from collections.abc import Sequence
 
 from smabench.analysis.data import AnalysisError
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not v > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
-    return v
+from smabench.argtypes import positive
 
 
 def add_arguments(s: argparse.ArgumentParser) -> None:
@@ -29,9 +20,9 @@ def add_arguments(s: argparse.ArgumentParser) -> None:
     s.add_argument("--json", metavar="OUT", help="write the verdict, RMSEs and parameters here")
     s.add_argument("--report", metavar="DIR", help="write report.md and PNG plots here")
     s.add_argument("--predictions", metavar="OUT.csv", help="write measured/baseline/extended")
-    s.add_argument("--load-kg", type=_positive, help="hanging load, kg (overrides session.json)")
-    s.add_argument("--wire-length-mm", type=_positive, help="wire length, mm (overrides)")
-    s.add_argument("--wire-diameter-mm", type=_positive, help="wire diameter, mm (overrides)")
+    s.add_argument("--load-kg", type=positive(), help="hanging load, kg (overrides session.json)")
+    s.add_argument("--wire-length-mm", type=positive(), help="wire length, mm (overrides)")
+    s.add_argument("--wire-diameter-mm", type=positive(), help="wire diameter, mm (overrides)")
     s.add_argument(
         "--candidates",
         help="comma-separated candidate causes to try (default: all that apply); asking for "

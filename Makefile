@@ -42,7 +42,7 @@ lint: venv
 	$(VENV)/bin/ruff check smabench drivers tests firmware/hardware sessions/samples
 
 test-python: venv
-	$(VENV)/bin/pytest -q
+	$(VENV)/bin/pytest -q --durations=20
 
 # the emulator tests in test-python need the .elf and the simavr harness
 firmware-build: sysdeps

@@ -29,7 +29,7 @@ import math
 import multiprocessing
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +56,8 @@ from smabench.analysis.model import (
     directions,
     simulate,
     temperature,
+    wire_key,
+    wire_state,
 )
 
 log = logging.getLogger(__name__)
@@ -338,27 +340,42 @@ class _Objective:
         self.nfev = 0
         self.last_linear: dict[str, float] = {}
         self.last_offsets: dict[str, float] = {}
+        # the design matrix: one sensor zero per session (fixed), then the basis columns
+        n_s = len(self.items)
+        self.rows = np.cumsum([0] + [len(it[2]) for it in self.items])
+        sid = np.repeat(np.arange(n_s), np.diff(self.rows))
+        onehot = (sid[:, None] == np.arange(n_s)[None, :]).astype(float)
+        self.x_mat = np.column_stack((onehot, np.zeros((len(sid), len(LINEAR)))))
+        # wire states by their inputs: a finite-difference step in a parameter that acts after
+        # the wire (sensor lag, residual strain) reuses the state of the point it steps from
+        self.states: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     def params(self, z: np.ndarray) -> dict[str, float]:
         p = dict(self.fixed)
         p.update(zip(self.names, (float(v) for v in z * self.scale), strict=True))
         return p
 
+    STATES_KEPT = 32
+    """Wire states remembered (more than one finite-difference Jacobian's worth of steps)."""
+
     def __call__(self, z: np.ndarray) -> np.ndarray:
         self.nfev += 1
         p = self.params(z)
-        cols, ys, sess = [], [], []
-        for k, (_s, g, sel, obs) in enumerate(self.items):
-            sim = simulate(g, p)
-            cols.append(sim.basis[sel])
-            ys.append(obs - sim.fixed[sel])
-            sess.append(np.full(len(sel), k))
-        basis = np.concatenate(cols)
-        y = np.concatenate(ys)
-        sid = np.concatenate(sess)
         n_s = len(self.items)
-        onehot = (sid[:, None] == np.arange(n_s)[None, :]).astype(float)
-        x_mat = np.column_stack((onehot, basis))
+        x_mat = self.x_mat.copy()
+        y = np.empty(len(x_mat))
+        key = wire_key(p)
+        for k, (_s, g, sel, obs) in enumerate(self.items):
+            state = self.states.get((k, key))
+            if state is None:
+                state = wire_state(g, p)
+                if len(self.states) >= self.STATES_KEPT * n_s:
+                    del self.states[next(iter(self.states))]
+                self.states[(k, key)] = state
+            sim = simulate(g, p, state)
+            a, b = self.rows[k], self.rows[k + 1]
+            x_mat[a:b, n_s:] = sim.basis[sel]
+            y[a:b] = obs - sim.fixed[sel]
         coef, *_ = np.linalg.lstsq(x_mat, y, rcond=None)
         r = y - x_mat @ coef
         if not np.all(np.isfinite(r)):
@@ -792,11 +809,20 @@ solution."""
 def _consensus(prob: Problem, folds: list[Fold], model: str, fits: dict, run_all,
                report) -> None:  # fmt: skip
     """Refit every fold of ``model`` from the other folds' solutions where they differ, and keep
-    what fits its own training part better. The folds share most of their training data, so
-    one that ended far from the others usually stalled in a local minimum (seen: a sensor lag
-    taken up by the kinetic lags in one fold of three)."""
+    what fits its own training part better (:func:`_consensus_tasks`, then
+    :func:`_consensus_apply`)."""
+    tasks, where = _consensus_tasks(prob, folds, model, fits)
+    _consensus_apply(model, fits, where, run_all(tasks), report)
+
+
+def _consensus_tasks(prob: Problem, folds: list[Fold], model: str,
+                     fits: dict) -> tuple[list[tuple], list[int]]:  # fmt: skip
+    """The refits of :func:`_consensus` (fit_model arguments) and the folds they are for. The
+    folds share most of their training data, so one that ended far from the others usually
+    stalled in a local minimum (seen: a sensor lag taken up by the kinetic lags in one fold of
+    three)."""
     if len(folds) < 2:
-        return
+        return [], []
     names, scale, *_ = _spec(prob, model)
     own = [i for i, n in enumerate(names) if n not in _BASE_NAMES] if model != "baseline" \
         else list(range(len(names)))  # fmt: skip
@@ -809,10 +835,19 @@ def _consensus(prob: Problem, folds: list[Fold], model: str, fits: dict, run_all
             base = fits["baseline"][i] if model != "baseline" else None
             tasks.append((folds[i], model, base, None, other))
             where.append(i)
-    for i, f in zip(where, run_all(tasks), strict=True):
+    return tasks, where
+
+
+def _consensus_apply(model: str, fits: dict, where: list[int], done: list[FitResult],
+                     report) -> None:  # fmt: skip
+    """Keep each refit of :func:`_consensus_tasks` that fits its training part better."""
+    cur = fits[model]
+    for i, f in zip(where, done, strict=True):
         report(model, i, f, " (restarted from the other folds)")
         if f.train_rmse_mm < cur[i].train_rmse_mm:
             cur[i] = f
+
+
 @dataclass
 class Analysis:
     prob: Problem
@@ -862,12 +897,21 @@ def analyse(
     order = sorted(prob.candidates, key=lambda c: c not in COUPLED)  # slow ones first
     pool = _pool(workers, len(order) * len(folds))
 
+    def submit(tasks: list[tuple]) -> list[Future]:
+        """fit_model(prob, *task) for every task: in the pool when there is one (running),
+        else here (done)."""
+        if pool is not None:
+            return [pool.submit(fit_model, prob, *t) for t in tasks]
+        out = []
+        for t in tasks:
+            fut: Future = Future()
+            fut.set_result(fit_model(prob, *t))
+            out.append(fut)
+        return out
+
     def run_all(tasks: list[tuple]) -> list[FitResult]:
         """fit_model(prob, *task) for every task, in the pool when there is one."""
-        if pool is None:
-            return [fit_model(prob, *t) for t in tasks]
-        futs = [pool.submit(fit_model, prob, *t) for t in tasks]
-        return [f.result() for f in futs]
+        return [f.result() for f in submit(tasks)]
 
     def report(model: str, fi: int, f: FitResult, what: str = "") -> None:
         timing[model] = timing.get(model, 0.0) + f.seconds
@@ -902,29 +946,11 @@ def analyse(
         for fi, f in enumerate(fits["baseline"]):
             report("baseline", fi, f)
         _consensus(prob, folds, "baseline", fits, run_all, report)
-        tasks = [(fold, c, fits["baseline"][fi]) for fi, fold in enumerate(folds) for c in order]
-        for (_fold, c, _b), f in zip(tasks, run_all(tasks), strict=True):
-            fits[c].append(f)
-        for c in order:
-            for fi, f in enumerate(fits[c]):
-                report(c, fi, f)
-            _consensus(prob, folds, c, fits, run_all, report)
+        rival = "sensor_lag" in prob.candidates and "current" in {s.kind for s in prob.sessions}
+        _candidate_fits(prob, folds, order, fits, submit, report, rival)
         for model in models:
             evaluate(model)
-        if "sensor_lag" in prob.candidates and "current" in {s.kind for s in prob.sessions}:
-            names = _spec(prob, KINETIC_RIVAL)[0]
-            tasks = []
-            for fi, fold in enumerate(folds):
-                x = np.append(fits["baseline"][fi].x, 0.0)
-                x_eq = x.copy()
-                x_eq[names.index("heat_lag_ratio")] = 1.0  # equal lags on both branches
-                x_dt = x.copy()  # the sensor fit's delay, as a delay of the transformation
-                lag = fits["sensor_lag"][fi].values
-                x_dt[-1] = lag.get("lag_s", 0.0) + lag.get("delay_s", 0.0)
-                tasks.append((fold, KINETIC_RIVAL, None, None, [x, x_eq, x_dt]))
-            fits[KINETIC_RIVAL] = run_all(tasks)
-            for fi, f in enumerate(fits[KINETIC_RIVAL]):
-                report(KINETIC_RIVAL, fi, f)
+        if rival:
             evaluate(KINETIC_RIVAL)
         ruled_out = _evidence(prob, fits, preds, unit_rmse, TIE_NOISE * noise)
         cooling = np.array([branch_ids(by_name[name])[ii[0]] % 2 == 1 for name, _f, ii in units],
@@ -944,6 +970,62 @@ def analyse(
     v["stroke_mm"] = stroke
     timing["total"] = time.perf_counter() - t_start
     return Analysis(prob, folds, fits, preds, heldout, units, unit_rmse, rmse, v, timing)
+
+
+def _candidate_fits(prob: Problem, folds: list[Fold], order: list[str], fits: dict, submit,
+                    report, rival: bool) -> None:  # fmt: skip
+    """Every candidate on every fold, then its consensus refits (:func:`_consensus`), and the
+    kinetic rival of ``sensor_lag`` when ``rival``; a candidate's refits start as soon as its
+    own folds are done (no fit waits for another candidate's), so the pool stays busy."""
+    futs = {c: [] for c in order}
+    for fi, fold in enumerate(folds):
+        for c in order:
+            futs[c].append(submit([(fold, c, fits["baseline"][fi])])[0])
+    stage = dict.fromkeys(order, "fit")
+    refits: dict[str, tuple[list[int], list[Future]]] = {}
+    rival_futs: list[Future] | None = None
+    while True:
+        for c in order:
+            if stage[c] == "fit" and all(f.done() for f in futs[c]):
+                fits[c] = [f.result() for f in futs[c]]
+                for fi, f in enumerate(fits[c]):
+                    report(c, fi, f)
+                tasks, where = _consensus_tasks(prob, folds, c, fits)
+                refits[c] = (where, submit(tasks))
+                stage[c] = "consensus"
+            if stage[c] == "consensus" and all(f.done() for f in refits[c][1]):
+                where, done = refits[c]
+                _consensus_apply(c, fits, where, [f.result() for f in done], report)
+                stage[c] = "done"
+        if rival and rival_futs is None and stage.get("sensor_lag") == "done":
+            rival_futs = submit(_rival_tasks(prob, folds, fits))
+        waiting = [f for c in order for f in futs[c] if not f.done()]
+        waiting += [f for c in order if c in refits for f in refits[c][1] if not f.done()]
+        waiting += [f for f in rival_futs or [] if not f.done()]
+        if not waiting and all(v == "done" for v in stage.values()):
+            break
+        if waiting:
+            wait(waiting, return_when=FIRST_COMPLETED)
+    if rival:
+        fits[KINETIC_RIVAL] = [f.result() for f in rival_futs]
+        for fi, f in enumerate(fits[KINETIC_RIVAL]):
+            report(KINETIC_RIVAL, fi, f)
+
+
+def _rival_tasks(prob: Problem, folds: list[Fold], fits: dict) -> list[tuple]:
+    """Fits of KINETIC_RIVAL per fold, from the baseline's fit with: no dead time of ξ, equal
+    lags on both branches, and the sensor fit's delay as a delay of the transformation."""
+    names = _spec(prob, KINETIC_RIVAL)[0]
+    tasks = []
+    for fi, fold in enumerate(folds):
+        x = np.append(fits["baseline"][fi].x, 0.0)
+        x_eq = x.copy()
+        x_eq[names.index("heat_lag_ratio")] = 1.0  # equal lags on both branches
+        x_dt = x.copy()  # the sensor fit's delay, as a delay of the transformation
+        lag = fits["sensor_lag"][fi].values
+        x_dt[-1] = lag.get("lag_s", 0.0) + lag.get("delay_s", 0.0)
+        tasks.append((fold, KINETIC_RIVAL, None, None, [x, x_eq, x_dt]))
+    return tasks
 
 
 MAX_CAUSES = 3

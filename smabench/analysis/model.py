@@ -289,11 +289,23 @@ class Simulated:
     fixed: np.ndarray  # known part: elastic ξ term + residual strain, mm
 
 
-def simulate(g: Grid, p: dict[str, float]) -> Simulated:
+POST_WIRE = frozenset(("xi_delay_s", "cyc_rate", "cyc_n0", "cyc_q", "lag_s", "delay_s"))
+"""Parameters that act after the wire's temperature and ξ (:func:`wire_state` reads none)."""
+
+
+def wire_key(p: dict[str, float]) -> tuple:
+    """What :func:`wire_state` depends on in ``p`` (for one grid): equal keys, equal states."""
+    return tuple(sorted((k, v) for k, v in p.items() if k not in POST_WIRE))
+
+
+def simulate(
+    g: Grid, p: dict[str, float], state: tuple[np.ndarray, np.ndarray] | None = None
+) -> Simulated:
     """Run the model on one grid; position = offset + basis @ (ε_L, α, ε_mix) + fixed, all
     behind the sensor lag. ε_mix bends the ξ → length map: a modulus mixed by volume (Voigt,
-    as in Brinson's model) instead of compliance (Reuss), or a strain that is not linear in ξ."""
-    temp, xi = wire_state(g, p)
+    as in Brinson's model) instead of compliance (Reuss), or a strain that is not linear in ξ.
+    ``state``: :func:`wire_state` of ``g`` and ``p`` when already known (not modified)."""
+    temp, xi = wire_state(g, p) if state is None else state
     xi_delay = p.get("xi_delay_s", 0.0)
     if xi_delay > 1e-6:  # the transformation late, the thermal expansion not (kinetic rival)
         xi = dead_time(xi, g.t, xi_delay)

@@ -333,6 +333,8 @@ class _Objective:
                 k_step = int(math.ceil(len(sel) / per_session))
                 sel = sel[np.isin(cyc, ids[::k_step])]
             k = len(self.items)
+            if len(sel):  # nothing after the last training point is needed
+                g = g.head(int(sel[-1]) + 1)
             self.items.append((s, g, sel, obs[sel]))
             clusters.append(k * 1_000_000 + branch[sel])
         self.clusters = np.concatenate([*clusters, np.zeros(0, dtype=np.int64)])

@@ -36,7 +36,7 @@ effects phase_resistance, latent_heat and convection_nonlinear make the heat bal
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -73,6 +73,17 @@ class Grid:
     length_mm: float
     heat_capacity_j_k: float
     resistance_ohm: float
+
+    def head(self, n: int) -> Grid:
+        """The first ``n`` grid points (the model is causal: the same values there)."""
+        if n >= len(self.t):
+            return self
+
+        def cut(a: np.ndarray | None, k: int) -> np.ndarray | None:
+            return None if a is None else a[:k]
+
+        return replace(self, t=self.t[:n], i2=cut(self.i2, n - 1), amb=cut(self.amb, n),
+                       temp=cut(self.temp, n))  # fmt: skip
 
 
 # --------------------------------------------------------------------------- helpers

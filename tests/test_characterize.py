@@ -249,7 +249,7 @@ def test_unreachable_scheduler_is_one_line(tmp_path, run_cli):
 
 
 @pytest.mark.slow
-def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, run_cli):
+def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, cli):
     """smabench analyze --each: one task per session; the same documents from local processes
     and from a Dask LocalCluster on loopback."""
     distributed = pytest.importorskip("distributed")
@@ -259,8 +259,8 @@ def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, run_cli):
     folders = []
     for k, load in enumerate((1.0, 2.0)):
         f = tmp_path / f"s{k}"
-        run_cli("simulate", "--cycles", "3", "--rate-hz", "20", "--load-kg", str(load),
-                "--seed", str(k), "--out", f, check=True)  # fmt: skip
+        cli("simulate", "--cycles", "3", "--rate-hz", "20", "--load-kg", str(load),
+            "--seed", str(k), "--out", f, check=True)  # fmt: skip
         folders.append(str(f))
     tasks = [(f, None, None, ["convection_nonlinear"]) for f in folders]
     local = run_tasks(analyse_one, tasks, workers=2)
@@ -269,8 +269,8 @@ def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, run_cli):
         remote = run_tasks(analyse_one, tasks, scheduler=cluster.scheduler_address)
     assert [d["session"] for d in local] == folders
     assert json.dumps(local, sort_keys=True) == json.dumps(remote, sort_keys=True)
-    proc = run_cli("analyze", folders[0], "--scheduler", "tcp://127.0.0.1:9", "--json",
-                   tmp_path / "x.json")  # fmt: skip
+    proc = cli("analyze", folders[0], "--scheduler", "tcp://127.0.0.1:9", "--json",
+               tmp_path / "x.json")  # fmt: skip
     assert proc.returncode == 2 and "--each" in proc.stderr
 
 

@@ -313,7 +313,9 @@ def test_a_slow_operator_gets_the_output_turned_off(bench, store):
         off_before_answer.append(not bench.device.call(lambda fw: fw.enabled))
         return f"{seen_a:.4f}"
 
-    args = _parse(["calibrate", "current", "--port", port, "--max-hold-s", "0.6", *FAST])
+    # the hold limit counts wall time, the settling and averaging (0.4 s) device time: 1.5 s
+    # leaves an in-process mock slowed by a busy machine time to finish them
+    args = _parse(["calibrate", "current", "--port", port, "--max-hold-s", "1.5", *FAST])
     assert cal.cmd_calibrate_current(args, input_fn=operator) == 0
     assert off_before_answer == [True, True, True]
     back = _read_back(port)

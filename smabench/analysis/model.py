@@ -182,7 +182,7 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
 _NONE = np.zeros(0)
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
     """Major branch falling from 1 to 0 across [lo, hi] (sign +1, heating; sign -1, cooling:
     its complement is returned), all of the same centre and mid slope:
@@ -217,7 +217,7 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
     return v if sign > 0 else 1.0 - v
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                  bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory):  # fmt: skip
     """One pass over the grid (the same discrete equations as the plant's ``Plant.step``).
@@ -310,35 +310,49 @@ def wire_key(p: dict[str, float]) -> tuple:
 
 
 def simulate(
-    g: Grid, p: dict[str, float], state: tuple[np.ndarray, np.ndarray] | None = None
+    g: Grid,
+    p: dict[str, float],
+    state: tuple[np.ndarray, np.ndarray] | None = None,
+    at: np.ndarray | None = None,
 ) -> Simulated:
     """Run the model on one grid; position = offset + basis @ (ε_L, α, ε_mix) + fixed, all
     behind the sensor lag. ε_mix bends the ξ → length map: a modulus mixed by volume (Voigt,
     as in Brinson's model) instead of compliance (Reuss), or a strain that is not linear in ξ.
-    ``state``: :func:`wire_state` of ``g`` and ``p`` when already known (not modified)."""
+    ``state``: :func:`wire_state` of ``g`` and ``p`` when already known (not modified);
+    ``at``: grid indices where ``basis`` and ``fixed`` are wanted (None: everywhere; the same
+    values as the whole grid's at these points)."""
     temp, xi = wire_state(g, p) if state is None else state
     xi_delay = p.get("xi_delay_s", 0.0)
     if xi_delay > 1e-6:  # the transformation late, the thermal expansion not (kinetic rival)
         xi = dead_time(xi, g.t, xi_delay)
-    l0 = g.length_mm
-    fixed = l0 * g.stress_mpa * DCOMPLIANCE_PER_MPA * xi
+    temp_all, xi_all = temp, xi
+    lag = p.get("lag_s", 0.0)
+    delay = p.get("delay_s", 0.0)
     rate = p.get("cyc_rate", 0.0)
+    pick = at is not None and lag <= 1e-6 and delay <= 1e-6  # pointwise from here on
     if rate:
         n_cyc = np.concatenate(([0.0], np.cumsum(np.abs(np.diff(xi))) * 0.5))
+        if pick:
+            n_cyc = n_cyc[at]
+    if pick:
+        xi, temp = xi[at], temp[at]
+    l0 = g.length_mm
+    fixed = l0 * g.stress_mpa * DCOMPLIANCE_PER_MPA * xi
+    if rate:
         fixed = fixed + l0 * residual_strain(n_cyc, rate, p.get("cyc_n0", 1e3),
                                              p.get("cyc_q", 1.0))  # fmt: skip
     basis = np.column_stack((l0 * xi, l0 * (temp - T_REF_C), l0 * xi * (1.0 - xi)))
-    lag = p.get("lag_s", 0.0)
     if lag > 1e-6:
         basis = np.column_stack(
             [first_order_lag(basis[:, j], g.dt, lag) for j in range(basis.shape[1])]
         )
         fixed = first_order_lag(fixed, g.dt, lag)
-    delay = p.get("delay_s", 0.0)
     if delay > 1e-6:
         basis = np.column_stack([dead_time(basis[:, j], g.t, delay) for j in range(basis.shape[1])])
         fixed = dead_time(fixed, g.t, delay)
-    return Simulated(temp, xi, basis, fixed)
+    if at is not None and not pick:
+        basis, fixed = basis[at], fixed[at]
+    return Simulated(temp_all, xi_all, basis, fixed)
 
 
 def residual_strain(n_cyc: np.ndarray, rate: float, n0: float, q: float) -> np.ndarray:

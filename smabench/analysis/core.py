@@ -97,6 +97,8 @@ SHAPE_STARTS = ((-0.8, -0.8), (-0.8, 0.8), (0.8, -0.8), (0.8, 0.8), (0.0, 0.0))
 """Branch shapes (h_shape, c_shape) the baseline fit starts from (Tanaka-like, logistic,
 cosine), each for SCREEN_NFEV evaluations before the full fit from the best."""
 SCREEN_NFEV = 12
+FIT_TOL = 1e-7
+"""ftol and xtol of every least_squares fit."""
 KEEP_STARTS = 2
 """Full fits from this many of a model's starts, the best after SCREEN_NFEV evaluations (on
 the test simulators the eventual best was among the two best screened in 96 % of the fits,
@@ -526,7 +528,7 @@ def _fit_model(
     def run(xs, nfev=None):
         return least_squares(
             obj, xs / scale, bounds=(lo / scale, hi / scale), diff_step=1e-4,
-            max_nfev=nfev or max_nfev, x_scale=1.0, method="trf", ftol=1e-7, xtol=1e-7,
+            max_nfev=nfev or max_nfev, x_scale=1.0, method="trf", ftol=FIT_TOL, xtol=FIT_TOL,
         )  # fmt: skip
 
     if base is None and starts_from is None:
@@ -883,6 +885,16 @@ def _rmse(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else math.nan
 
 
+_SHARED: dict[int, Problem] = {}
+"""Problems of the running analyses, by id: the fork pool's workers inherit them, so a task
+sends only its fold and starts (a long session's problem is tens of MB to pickle)."""
+
+
+def _fit_shared(key: int, *task) -> FitResult:
+    """fit_model on a problem of :data:`_SHARED` (in a forked worker)."""
+    return fit_model(_SHARED[key], *task)
+
+
 def _pool(workers: int | None, n_tasks: int):
     """A process pool for the candidate fits (None: fit in this process)."""
     if workers is None:
@@ -912,13 +924,15 @@ def analyse(
     fits: dict[str, list[FitResult]] = {m: [] for m in models}
     timing: dict[str, float] = {}
     order = sorted(prob.candidates, key=lambda c: c not in COUPLED)  # slow ones first
+    key = id(prob)
+    _SHARED[key] = prob  # before the pool forks its workers
     pool = _pool(workers, len(order) * len(folds))
 
     def submit(tasks: list[tuple]) -> list[Future]:
         """fit_model(prob, *task) for every task: in the pool when there is one (running),
         else here (done)."""
         if pool is not None:
-            return [pool.submit(fit_model, prob, *t) for t in tasks]
+            return [pool.submit(_fit_shared, key, *t) for t in tasks]
         out = []
         for t in tasks:
             fut: Future = Future()
@@ -983,6 +997,7 @@ def analyse(
     finally:
         if pool is not None:
             pool.shutdown()
+        _SHARED.pop(key, None)
     v["noise_mm"] = noise
     v["stroke_mm"] = stroke
     timing["total"] = time.perf_counter() - t_start

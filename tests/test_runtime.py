@@ -409,3 +409,28 @@ def test_sample_type_is_what_the_sim_sensor_returns():
     bench = SimBench(2.0)
     s = bench.sensor.read_or_flag()
     assert isinstance(s, Sample) and math.isfinite(s.position_mm) and s.flags == 0
+
+
+# --------------------------------------------------------------------------- bench priority
+def test_bench_priority_lowers_the_nice_value_and_the_sessions_autogroup(tmp_path, monkeypatch):
+    """With autogroup scheduling a process nice orders only one session's processes: the
+    session's autogroup nice is lowered too; refused (no CAP_SYS_NICE): nothing written."""
+    from smabench.bench import priority
+
+    group = tmp_path / "autogroup"
+    monkeypatch.setattr(priority, "AUTOGROUP", str(group))
+    calls: list[tuple[int, int, int]] = []
+    monkeypatch.setattr(priority.os, "setpriority", lambda *a: calls.append(a))
+    assert priority.raise_priority(-7) is True
+    assert calls == [(priority.os.PRIO_PROCESS, 0, -7)] and group.read_text() == "-7"
+
+    group.unlink()
+    monkeypatch.setattr(priority, "AUTOGROUP", str(tmp_path / "none" / "autogroup"))
+    assert priority.raise_priority() is True  # a kernel without autogroup: the nice value only
+
+    def refuse(*_):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(priority.os, "setpriority", refuse)
+    monkeypatch.setattr(priority, "AUTOGROUP", str(group))
+    assert priority.raise_priority() is False and not group.exists()

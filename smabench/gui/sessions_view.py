@@ -8,13 +8,8 @@ Cycles are shown counting from 1 everywhere (the recorded ``cycle`` column count
 from __future__ import annotations
 
 import concurrent.futures
-import contextlib
 import json
 import logging
-import multiprocessing
-import os
-import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,38 +19,29 @@ import numpy as np
 from PySide6 import QtCore, QtWidgets
 
 from smabench.gui import words
+from smabench.gui.fitjob import fit_session, replay_columns
 from smabench.gui.link import SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
+from smabench.gui.worker import ComputeWorker
 
 log = logging.getLogger(__name__)
 
 
-def shown_cycle(index: float) -> int:
-    """The cycle number the operator sees for a recorded ``cycle`` index (0 → 1)."""
-    return int(index) + 1
-
-
-WORKER_NICE = 19  # the lowest: a fit must not take CPU from the bench or the GUI
-
-
-def _lower_priority() -> None:
-    """Lowest priority for the calling thread (Linux: nice is per thread, and a process started
-    from this thread inherits it): computations yield the CPU to the GUI and the bench."""
-    with contextlib.suppress(OSError, AttributeError):
-        os.setpriority(os.PRIO_PROCESS, 0, WORKER_NICE)
-
-
 class Jobs:
     """Work off the GUI thread; results handed back by :meth:`poll` on the GUI thread, so
-    callbacks may touch widgets. File I/O runs on threads (:meth:`submit`); computations run in a
-    worker process at lower priority (:meth:`compute`), so a fit never holds the GUI's
-    interpreter lock while the operator reaches for the E-STOP."""
+    callbacks may touch widgets. File I/O runs on threads (:meth:`submit`); computations run in
+    the computation process (:meth:`compute`, :class:`~smabench.gui.worker.ComputeWorker`),
+    started with the window at the lowest priority, so a fit never holds the GUI's interpreter
+    lock nor takes the CPU while the operator reaches for the E-STOP."""
 
     def __init__(self, workers: int = 2) -> None:
         self.pool = concurrent.futures.ThreadPoolExecutor(workers, thread_name_prefix="gui-job")
-        self._procs: concurrent.futures.ProcessPoolExecutor | None = None
-        self._procs_lock = threading.Lock()
+        self.worker = ComputeWorker()
         self.pending: list[tuple[concurrent.futures.Future, Callable, Callable]] = []
+
+    def start_worker(self) -> None:
+        """Start the computation process now (its start-up then never meets a fit request)."""
+        self.worker.start()
 
     def submit(self, fn: Callable[[], Any], done: Callable[[Any], None],
                failed: Callable[[BaseException], None]) -> concurrent.futures.Future:  # fmt: skip
@@ -65,28 +51,20 @@ class Jobs:
 
     def compute(self, fn: Callable[..., Any], args: tuple, done: Callable[[Any], None],
                 failed: Callable[[BaseException], None]) -> concurrent.futures.Future:  # fmt: skip
-        """``fn(*args)`` in the worker process (``fn`` and ``args`` picklable).
-
-        Submitted from a job thread at the lowest priority: the worker is spawned from that
-        thread, so even its start-up (a new interpreter importing numpy and scipy) runs at the
-        lowest priority and cannot take the CPU from the bench or the GUI."""
-
-        def in_worker() -> Any:
-            _lower_priority()  # this job thread, and the worker process it may spawn
-            with self._procs_lock:
-                if self._procs is None:  # spawned, not forked: the GUI process has threads
-                    self._procs = concurrent.futures.ProcessPoolExecutor(
-                        1, mp_context=multiprocessing.get_context("spawn"),
-                        initializer=_lower_priority,
-                    )  # fmt: skip
-                procs = self._procs
-            return procs.submit(fn, *args).result()
-
-        return self.submit(in_worker, done, failed)
+        """``fn(*args)`` in the computation process (``fn`` a module-level function of a module
+        without Qt, ``args`` picklable)."""
+        fut = self.worker.submit(fn, args)
+        self.pending.append((fut, done, failed))
+        return fut
 
     @property
     def busy(self) -> bool:
         return bool(self.pending)
+
+    @property
+    def computing(self) -> bool:
+        """A computation is running in the computation process now."""
+        return self.worker.computing
 
     def poll(self) -> None:
         still = []
@@ -103,10 +81,7 @@ class Jobs:
 
     def close(self) -> None:
         self.pool.shutdown(wait=False, cancel_futures=True)
-        if self._procs is not None:
-            for proc in list(getattr(self._procs, "_processes", {}).values()):
-                proc.terminate()  # a fit in progress is not waited for
-            self._procs.shutdown(wait=False, cancel_futures=True)
+        self.worker.close()  # a fit in progress is not waited for
 
 
 @dataclass
@@ -144,16 +119,6 @@ def read_session_rows(root: Path) -> list[SessionRow]:
                                meta_path.stat().st_mtime))  # fmt: skip
     rows.sort(key=lambda r: r.mtime, reverse=True)
     return rows
-
-
-def replay_columns(session) -> dict[str, np.ndarray]:
-    """A loaded session's columns as the plots want them."""
-    n = len(session)
-    cols = {c: session.data[c] for c in session.data if c != "mode"}
-    if "t_s" not in cols:
-        cols["t_s"] = np.arange(n, dtype=float)
-    cols.setdefault("cycle", np.zeros(n))
-    return cols
 
 
 class ReplayView(QtWidgets.QWidget):
@@ -211,48 +176,6 @@ class ReplayView(QtWidgets.QWidget):
         self.fit_text.setPlainText(text)
         if temp is not None and pos is not None:
             self.loop_plot.show_model(temp, pos)
-
-
-def fit_session(folder: Path, model: str, cycle: int | None) -> dict[str, Any]:
-    """Load ``folder`` and fit ``model`` to cycle ``cycle`` (counted from 1; None: the last
-    complete one); runs off the GUI thread. ValueError in words when it cannot."""
-    from smabench.physics.identify import FitError, fit_loop
-    from smabench.sessions import load_session
-
-    t0 = time.perf_counter()
-    s = load_session(folder)
-    cols = replay_columns(s)
-    idx = np.asarray(cols["cycle"], dtype=float)
-    finite = idx[np.isfinite(idx)]
-    if cycle is None:
-        chosen = float(finite.max()) if finite.size else 0.0
-    else:
-        chosen = float(cycle - 1)
-        if finite.size and chosen not in set(finite.tolist()):
-            raise ValueError(f"this session has cycles 1 … {shown_cycle(finite.max())}, "
-                             f"not {cycle}")  # fmt: skip
-    sel = idx == chosen if finite.size else np.ones(idx.size, bool)
-    # the temperature the loop plot shows: measured when the session has it, else estimated
-    measured = np.asarray(cols.get("temperature_C", np.full(idx.size, np.nan)), float)
-    use_measured = bool(np.isfinite(measured).any())
-    source = "measured" if use_measured else "estimated"
-    temp = measured[sel] if use_measured else np.asarray(cols["temperature_est_C"], float)[sel]
-    pos = np.asarray(cols["position_mm"], float)[sel]
-    ok = np.isfinite(temp) & np.isfinite(pos)
-    try:
-        fit = fit_loop(temp[ok], pos[ok], model)
-    except FitError as exc:
-        raise ValueError(f"the {model} model could not be fitted to cycle "
-                         f"{shown_cycle(chosen)}: {exc}") from None  # fmt: skip
-    lines = [f"{Path(folder).name}: model {fit.model} on cycle {shown_cycle(chosen)} "
-             f"({fit.n_points} points, {source} temperature, "
-             f"{time.perf_counter() - t0:.1f} s)",
-             f"rmse {fit.rmse_mm:.4f} mm   nrmse {fit.nrmse_percent:.3f} % of stroke   "
-             f"ard {fit.ard_percent:.3f} %"]  # fmt: skip
-    lines += [f"  {k} = {v:.6g}" for k, v in fit.parameters.items()]
-    return {"text": "\n".join(lines), "temp": temp[ok], "model_mm": fit.predict(temp[ok]),
-            "nrmse_percent": fit.nrmse_percent, "rmse_mm": fit.rmse_mm,
-            "cycle": shown_cycle(chosen), "folder": str(folder)}  # fmt: skip
 
 
 class SessionsMixin:

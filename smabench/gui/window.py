@@ -29,13 +29,11 @@ from smabench import settings as schema
 from smabench.gui import words
 from smabench.gui.estop import EStopGuard
 from smabench.gui.fields import Field
+from smabench.gui.fitjob import shown_cycle
+from smabench.gui.gui_gc import GuiThreadCollector
 from smabench.gui.layout import MODES, WindowLayout
 from smabench.gui.link import RuntimeLink, SampleBuffer
-from smabench.gui.sessions_view import (
-    Jobs,
-    SessionsMixin,
-    shown_cycle,
-)
+from smabench.gui.sessions_view import Jobs, SessionsMixin
 from smabench.gui.specs import (
     GAIN_LAWS,
     OPEN_LOOP_CURRENT,
@@ -93,7 +91,9 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self._question: QtWidgets.QMessageBox | None = None
         self._fresh_session = False
         self._open_current_due: float | None = None
+        self.collector = GuiThreadCollector(self)  # Qt objects freed on this thread only
         self.jobs = Jobs()
+        self.jobs.start_worker()  # fits' process up (and its imports done) before any run
         self.fields: dict[str, Field] = {}  # by settings-schema key
         self._build(mock_speed)
         self.guard = EStopGuard(self.estop, self)
@@ -729,4 +729,5 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self.link.estop()
         self.disconnect_devices()
         self.jobs.close()
+        self.collector.stop()
         super().closeEvent(event)

@@ -132,6 +132,8 @@ class CurrentSource:
             (:data:`CONNECT_WAIT_S`; 0: one try with its retries).
         lease_s: setpoint lease sent at connect, s (0.02 … 5; ``None`` = the device default,
             0.25 s): the output goes off when no :meth:`set_current` came for this long.
+        owner_priority: SCHED_FIFO priority for the link's owner thread (keepalive, telemetry);
+            ``None``: normal scheduling (see :class:`~smabench.drivers.link.FramedLink`).
     """
 
     def __init__(
@@ -150,6 +152,7 @@ class CurrentSource:
         protocol_version: int = p.PROTOCOL_VERSION,
         connect_wait_s: float = CONNECT_WAIT_S,
         lease_s: float | None = None,
+        owner_priority: int | None = None,
     ) -> None:
         self._link = FramedLink(
             port,
@@ -161,6 +164,7 @@ class CurrentSource:
             max_reopen_attempts=max_reconnect_attempts,
             handlers={MsgType.TELEMETRY: self._on_telemetry},
             on_resync=self._handshake,
+            owner_priority=owner_priority,
         )
         self.port_name = self._link.port_name
         self.telemetry_period_s = telemetry_period_s

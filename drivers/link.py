@@ -25,6 +25,7 @@ import collections
 import contextlib
 import itertools
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -111,6 +112,9 @@ class FramedLink:
         on_resync: called in a helper thread after an automatic reopen, and when the device
             answers again after a silence; it redoes the handshake (through this link) and
             raises :class:`LinkTimeout` to be tried again, any other error to give up.
+        owner_priority: SCHED_FIFO priority for the owner thread (the keepalive that feeds the
+            device's host timeout, and the telemetry path), so host load cannot hold them past
+            those timeouts; None (default) or no CAP_SYS_NICE: normal scheduling.
     """
 
     def __init__(
@@ -125,6 +129,7 @@ class FramedLink:
         max_reopen_attempts: int = 8,
         handlers: dict[int, PacketHandler] | None = None,
         on_resync: Callable[[], object] | None = None,
+        owner_priority: int | None = None,
     ) -> None:
         if isinstance(port, str):
             self.port_name = port
@@ -141,6 +146,7 @@ class FramedLink:
         self._keepalive_paused = False
         self._handlers = dict(handlers or {})
         self._on_resync = on_resync
+        self.owner_priority = owner_priority
 
         self._ser: Any = None
         self._rx = p.FrameReceiver()
@@ -430,6 +436,11 @@ class FramedLink:
 
     def _run(self) -> None:
         log.debug("owner thread running")
+        if self.owner_priority is not None:
+            try:  # this thread only (Linux: 0 is the calling thread)
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.owner_priority))
+            except (OSError, AttributeError) as exc:
+                log.info("link owner thread stays at normal scheduling (%s)", exc)
         try:
             while not self._stop.is_set():
                 self._wake.clear()

@@ -24,6 +24,7 @@ Results live in a small JSON file (:func:`store_path`: ``--calibration FILE``, e
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -190,6 +191,9 @@ class HeldCurrent:
             self._unsubscribe = None
 
     def _renew(self) -> None:
+        from smabench.bench.priority import realtime_loop_thread
+
+        realtime_loop_thread()  # it renews the lease (LEASE_S): not held up by host load
         while not self._stop.wait(RENEW_S):
             if time.monotonic() - self._t0 >= self.max_hold_s:
                 self.timed_out = True
@@ -652,6 +656,10 @@ def session_block(source: Any, path: str | Path | None = None) -> dict[str, Any]
         except (KeyError, TypeError, ValueError):
             pass
         latest = source.latest() if hasattr(source, "latest") else None
+        if latest is None and hasattr(source, "wait_telemetry"):
+            # just connected on a busy host: the first frame (10 ms period) may not be in yet
+            with contextlib.suppress(Exception):  # none within 1 s: unknown (null)
+                latest = source.wait_telemetry(timeout_s=1.0)
         current = {
             "current_offset_a": cal.current_offset_a,
             "current_gain": cal.current_gain,
@@ -715,11 +723,11 @@ def _prompt_meter(input_fn: Callable[[str], str], out: Any) -> MeterFn:
 
 
 def _connect(port: str) -> Any:
-    from smabench.bench.priority import raise_priority
+    from smabench.bench.priority import LINK_RT_PRIORITY, raise_priority
     from smabench.drivers.current_source import CurrentSource, CurrentSourceError
 
     raise_priority()  # it renews the lease while the operator reads the meter: as the bench loop
-    cs = CurrentSource(port, lease_s=LEASE_S)
+    cs = CurrentSource(port, lease_s=LEASE_S, owner_priority=LINK_RT_PRIORITY)
     try:
         cs.connect()
     except CurrentSourceError as exc:

@@ -298,6 +298,7 @@ def open_devices(
     The settings are checked again against the driver's hard limit before anything but the
     handshake is sent; latched faults from before the session are cleared.
     """
+    from smabench.bench.priority import LINK_RT_PRIORITY
     from smabench.drivers import protocol as p
     from smabench.drivers.current_source import CurrentSource
     from smabench.drivers.displacement import DisplacementSensor
@@ -309,6 +310,7 @@ def open_devices(
         host_timeout_s=min(5.0, 0.25 * scale),
         lease_s=min(5.0, p.LEASE_DEFAULT_S * scale),  # the setpoint lease, in device time
         telemetry_period_s=min(1.0, 0.01 * scale),
+        owner_priority=LINK_RT_PRIORITY,  # keepalive and telemetry: not held up by host load
     )
     try:
         info = source.connect()
@@ -331,7 +333,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.port and not args.sensor:
         raise ValueError("--port needs --sensor (tcp:HOST:PORT or rtu:DEVICE[:BAUD])")
     settings = settings_from_args(args)  # everything checked before a device is opened
-    from smabench.bench.priority import raise_priority
+    from smabench.bench.priority import raise_priority, realtime_loop_thread
 
     raise_priority()  # the control loop (and the mock it starts) before other work
     stress = settings.stress()
@@ -397,6 +399,9 @@ def cmd_run(args: argparse.Namespace) -> int:
             devices,
             on_sample=None if args.quiet else _progress_printer(protocol, total),
             command=protocol,
+            # this thread runs the loop, which renews the setpoint lease (0.25 s): real-time
+            # scheduling where allowed, as the GUI's runtime does
+            on_start=lambda _runtime: realtime_loop_thread(),
         )
     finally:
         for dev in (source, sensor):

@@ -40,6 +40,9 @@ def raise_priority(nice: int = LOOP_NICE) -> bool:
 
 
 LOOP_RT_PRIORITY = 20
+LINK_RT_PRIORITY = LOOP_RT_PRIORITY
+"""SCHED_FIFO priority of the current driver link's owner thread (its keepalive feeds the
+device's host timeout, 0.25 s; the loop reads the telemetry it receives): as the loop's."""
 
 
 def realtime_loop_thread(priority: int = LOOP_RT_PRIORITY) -> bool:

@@ -54,13 +54,13 @@ def test_import_writes_contract_session(imported):
         assert meta["wire"]["length_mm"] == 55 and 90 < meta["stress_MPa_mean"] < 180
 
 
-@pytest.mark.slow  # a `smabench fit` subprocess per measured loop and model
+@pytest.mark.slow  # a `smabench fit` per measured loop and model (in this process)
 @pytest.mark.parametrize("model", list(NRMSE_TARGET_PERCENT))
-def test_fit_meets_accuracy_targets(imported, run_cli, tmp_path, model):
+def test_fit_meets_accuracy_targets(imported, cli, tmp_path, model):
     for name, folder in imported.items():
         js = tmp_path / f"{name}-{model}.json"
         png = tmp_path / f"{name}-{model}.png"
-        proc = run_cli("fit", folder, "--model", model, "--json", js, "--plot", png, check=True)
+        proc = cli("fit", folder, "--model", model, "--json", js, "--plot", png, check=True)
         assert "nrmse" in proc.stdout
         rep = json.loads(js.read_text())
         assert {"model", "nrmse_percent", "rmse_mm", "ard_percent", "parameters"} <= set(rep)

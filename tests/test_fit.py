@@ -44,8 +44,9 @@ def test_broken_documents_are_refused():
                            "model": "sigmoid", "state": {"ym_mm": 1.0}})  # fmt: skip
 
 
-@pytest.mark.slow  # three `smabench` subprocesses, each fits
-def test_fit_holdout_and_test_then_predict(tmp_path, run_cli):
+@pytest.mark.slow  # three `smabench` commands (in this process), each fits
+def test_fit_holdout_and_test_then_predict(tmp_path, cli):
+    run_cli = cli
     js = tmp_path / "fit.json"
     proc = run_cli("fit", S2, "--model", "sigmoid", "--holdout", "0.3", "--json", js)
     assert proc.returncode == 0, proc.stderr

@@ -298,11 +298,12 @@ def open_devices(
     The settings are checked again against the driver's hard limit before anything but the
     handshake is sent; latched faults from before the session are cleared.
     """
-    from smabench.bench.priority import LINK_RT_PRIORITY
+    from smabench.bench.priority import LINK_RT_PRIORITY, raise_priority
     from smabench.drivers import protocol as p
     from smabench.drivers.current_source import CurrentSource
     from smabench.drivers.displacement import DisplacementSensor
 
+    raise_priority()  # every process that runs sessions (run, plan, bench control, the GUI's)
     scale = settings.time_scale  # the device's clocks run `scale` × faster on a fast mock
     source = CurrentSource(
         port,

@@ -86,10 +86,11 @@ def click(qtbot, widget) -> None:
         qtbot.mouseClick(widget, Qt.MouseButton.LeftButton)
 
 
-def cycles(qtbot, w, n: int = 1, heat_s: float = 4.0, cool_s: float = 3.0) -> None:
+def cycles(qtbot, w, n: int = 1, heat_s: float = 4.0, cool_s: float = 3.0,
+           current_a: float = 1.4) -> None:  # fmt: skip
     w.protocol.setCurrentText("cycles")
     type_into(qtbot, w.fields["protocol.cycles"], str(n))
-    type_into(qtbot, w.fields["protocol.current_a"], "1.4")
+    type_into(qtbot, w.fields["protocol.current_a"], f"{current_a:g}")
     type_into(qtbot, w.fields["protocol.heat_s"], f"{heat_s:g}")
     type_into(qtbot, w.fields["protocol.cool_timeout_s"], f"{cool_s:g}")
 
@@ -99,16 +100,18 @@ def wait_end(qtbot, w, timeout_ms: int = 60000) -> dict:
     return w.last_end
 
 
-def start_heating(qtbot, w) -> None:
-    cycles(qtbot, w, n=3, heat_s=60.0)
+def start_heating(qtbot, w, current_a: float = 1.4) -> None:
+    cycles(qtbot, w, n=3, heat_s=60.0, current_a=current_a)
     w.last_end = None
     click(qtbot, w.start_button)
     # running, or stopped trying (refused, or the connection failed): then say what it said
     qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
         w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
-    if w.state == State.ERROR and "did not answer" in w.message.text():
+    if w.state == State.ERROR and any(s in w.message.text() for s in ("did not answer",
+                                                                       "stopped answering")):
         # the mock bench did not answer the handshake in time (seen at load average 12 on two
-        # cores); an operator presses Start again, so does this test, once
+        # cores), or its link dropped (the kernel's tty worker starved); an operator presses
+        # Start again, so does this test, once
         print(f"\nretrying after: {w.message.text()}")
         qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
         qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
@@ -209,12 +212,17 @@ def _gui_threads_nice() -> list[int]:
     return out
 
 
+# below the energy budget's steady-state limit, sqrt(G·ΔT/R) = sqrt(0.0059 · 140 / 0.55) ≈ 1.2 A
+# (drivers.protocol.HeatModel defaults), above the 0.5 A that shows the output on
+HOLD_CURRENT_A = 0.9
 STATES = ["drop-down", "menu", "file dialog", "modal file dialog", "fit running"]
 
 
 @pytest.mark.parametrize("where", STATES)
 def test_estop_key_stops_the_output_in_every_state(qtbot, win, tmp_path, where):
-    start_heating(qtbot, win)
+    # a fit may take long on a loaded machine (its worker has the lowest priority): meanwhile
+    # the wire is held at a current the driver's energy budget allows for ever
+    start_heating(qtbot, win, HOLD_CURRENT_A if where == "fit running" else 1.4)
     if where == "drop-down":
         target = _open_dropdown(qtbot, win)
     elif where == "menu":
@@ -226,6 +234,16 @@ def test_estop_key_stops_the_output_in_every_state(qtbot, win, tmp_path, where):
         assert QtWidgets.QApplication.activeModalWidget() is win._dialog
     else:
         target = _long_fit(qtbot, win, tmp_path)
+    for _ in range(2 if where == "fit running" else 0):  # (the others take a second or so)
+        if win.state == State.RUNNING:
+            break
+        # the link to the mock bench dropped while the fit's worker started (on a loaded machine
+        # the kernel's tty worker that carries the pty's bytes waited up to 0.8 s for a CPU,
+        # past the driver's 0.25 s host timeout; the output turned itself off, as it must): not
+        # the state under test. The operator starts again, so does this test (at most twice)
+        assert "stopped answering" in win.message.text(), (win.state, win.message.text())
+        print(f"\nrestarting after: {win.message.text()}")
+        start_heating(qtbot, win, HOLD_CURRENT_A)
     assert win.state == State.RUNNING
     pressed = time.monotonic()
     QTest.keyClick(target, Qt.Key.Key_Escape)

@@ -229,7 +229,8 @@ def test_example_plan_on_the_mock_killed_and_resumed(tmp_path):
     state_file = tmp_path / "example" / "plan-state.json"
     deadline = time.monotonic() + 60
     while not (tmp_path / "example" / "02-cycles-2kg" / "samples.csv").exists():
-        assert time.monotonic() < deadline
+        assert proc.poll() is None, "".join(lines)  # the plan ended (its stderr is above)
+        assert time.monotonic() < deadline, "".join(lines)
         time.sleep(0.05)
     os.killpg(proc.pid, signal.SIGKILL)  # the whole process group: the plan and its mock
     proc.wait()

@@ -134,9 +134,11 @@ class MockPortsSeen:
 
 
 class MockProcess:
-    """``smabench mock`` in its own process; :attr:`ports` once it is ready."""
+    """``smabench mock`` in its own process; :attr:`ports` once it is ready (``timeout_s``:
+    its start-up, an interpreter and its imports, takes 1-2 s on a quiet machine and over
+    20 s beside other work on two cores; nothing waits on the bench meanwhile)."""
 
-    def __init__(self, mock_args: list[str], timeout_s: float = 20.0) -> None:
+    def __init__(self, mock_args: list[str], timeout_s: float = 60.0) -> None:
         from smabench.drivers.mock.bench import die_with_parent
 
         # it also ends on stdin EOF, i.e. when this process dies, whatever the signal

@@ -347,10 +347,12 @@ def simulate(
             [first_order_lag(basis[:, j], g.dt, lag) for j in range(basis.shape[1])]
         )
         fixed = first_order_lag(fixed, g.dt, lag)
-    if delay > 1e-6:
-        basis = np.column_stack([dead_time(basis[:, j], g.t, delay) for j in range(basis.shape[1])])
-        fixed = dead_time(fixed, g.t, delay)
-    if at is not None and not pick:
+    if delay > 1e-6:  # read late: interpolated only where wanted (pointwise, the same values)
+        t_read = g.t - delay if at is None else g.t[at] - delay
+        basis = np.column_stack([np.interp(t_read, g.t, basis[:, j])
+                                 for j in range(basis.shape[1])])  # fmt: skip
+        fixed = np.interp(t_read, g.t, fixed)
+    elif at is not None and not pick:
         basis, fixed = basis[at], fixed[at]
     return Simulated(temp_all, xi_all, basis, fixed)
 

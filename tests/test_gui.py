@@ -7,6 +7,7 @@ Linux), and the test subtracts the time it pressed the key.
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import time
@@ -39,7 +40,16 @@ def win(qtbot, tmp_path):
     w.resize(1280, 800)
     w.show()
     yield w
+    dispose(w)
+
+
+def dispose(w: MainWindow) -> None:
+    """Close the window and destroy its Qt objects here, on the GUI thread (a later garbage
+    collection in another thread would run Qt destructors there)."""
     w.close()
+    w.deleteLater()
+    QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
+    gc.collect()
 
 
 def type_into(qtbot, field, text: str) -> None:

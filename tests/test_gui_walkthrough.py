@@ -100,25 +100,35 @@ def wait_end(qtbot, w, timeout_ms: int = 60000) -> dict:
     return w.last_end
 
 
+LINK_TROUBLE = ("did not answer", "stopped answering")
+
+
 def start_heating(qtbot, w, current_a: float = 1.4) -> None:
+    """A long heating session running with the output on (the driver measures > 0.5 A).
+
+    On a loaded machine the mock bench may miss the handshake (seen at load average 12 on two
+    cores) or its link may drop (the kernel's tty worker that carries the pty's bytes waited
+    0.2–0.8 s for a CPU, past the driver's 0.25 s host timeout: the output turns itself off,
+    as it must). Neither is the state under test: an operator presses Start again, so does this
+    test (at most twice), saying why."""
     cycles(qtbot, w, n=3, heat_s=60.0, current_a=current_a)
-    w.last_end = None
-    click(qtbot, w.start_button)
-    # running, or stopped trying (refused, or the connection failed): then say what it said
-    qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
-        w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
-    if w.state == State.ERROR and any(s in w.message.text() for s in ("did not answer",
-                                                                       "stopped answering")):
-        # the mock bench did not answer the handshake in time (seen at load average 12 on two
-        # cores), or its link dropped (the kernel's tty worker starved); an operator presses
-        # Start again, so does this test, once
-        print(f"\nretrying after: {w.message.text()}")
-        qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
+    for attempt in range(3):
+        w.last_end = None
+        click(qtbot, w.start_button)
+        # running, or stopped trying (refused, or the connection failed)
         qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
             w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
-    assert w.state == State.RUNNING, (w.state, w.message.text(), w.last_end, w.sm.history[-4:])
-    qtbot.waitUntil(lambda: (w.status.get("readout", {}).get("current_a") or 0) > 0.5,
-                    timeout=30000)  # fmt: skip
+        if w.state == State.RUNNING:
+            qtbot.waitUntil(lambda: (w.status.get("readout", {}).get("current_a") or 0) > 0.5
+                            or w.state != State.RUNNING, timeout=30000)  # fmt: skip
+            if w.state == State.RUNNING:
+                return
+        if attempt == 2 or not any(t in w.message.text() for t in LINK_TROUBLE):
+            break
+        print(f"\nstarting again after: {w.message.text()}")
+        qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR, State.DISCONNECTED),
+                        timeout=15000)  # fmt: skip
+    raise AssertionError((w.state, w.message.text(), w.last_end, w.sm.history[-4:]))
 
 
 def estop_latency_s(qtbot, w, pressed_t: float) -> float:
@@ -187,7 +197,9 @@ def _long_fit(qtbot, w, tmp_path):
     """A Preisach fit of a recorded session through the Sessions tab's Fit button, computing
     in the GUI's computation process when this returns (that process says so itself: no
     assumption about how long a fit takes on this machine)."""
-    folder = simulated_session(tmp_path / "elsewhere")
+    folder = tmp_path / "elsewhere" / "sim-3cycles"
+    if not folder.exists():
+        simulated_session(folder.parent)
     w.set_sessions_dir(folder.parent)
     qtbot.waitUntil(lambda: w.session_list.topLevelItemCount() >= 1, timeout=10000)
     w.session_list.setCurrentItem(w.session_list.topLevelItem(0))
@@ -237,13 +249,13 @@ def test_estop_key_stops_the_output_in_every_state(qtbot, win, tmp_path, where):
     for _ in range(2 if where == "fit running" else 0):  # (the others take a second or so)
         if win.state == State.RUNNING:
             break
-        # the link to the mock bench dropped while the fit's worker started (on a loaded machine
-        # the kernel's tty worker that carries the pty's bytes waited up to 0.8 s for a CPU,
-        # past the driver's 0.25 s host timeout; the output turned itself off, as it must): not
-        # the state under test. The operator starts again, so does this test (at most twice)
+        # the mock bench's link dropped while the fit waited for its worker (see start_heating):
+        # not the state under test; started again (the fit goes on computing meanwhile)
         assert "stopped answering" in win.message.text(), (win.state, win.message.text())
         print(f"\nrestarting after: {win.message.text()}")
         start_heating(qtbot, win, HOLD_CURRENT_A)
+        if not win.jobs.computing:  # it ended meanwhile: another one
+            target = _long_fit(qtbot, win, tmp_path)
     assert win.state == State.RUNNING
     pressed = time.monotonic()
     QTest.keyClick(target, Qt.Key.Key_Escape)
@@ -297,8 +309,15 @@ def _inside(win, w) -> bool:
 
 def test_run_controls_are_never_clipped_and_screenshots(qtbot, win, tmp_path):
     cycles(qtbot, win, n=2, heat_s=3.0, cool_s=4.0)  # a finished run in the plots
-    click(qtbot, win.start_button)
-    assert wait_end(qtbot, win)["status"] == "completed"
+    for _ in range(2):  # once more when the mock's link dropped (see start_heating)
+        win.last_end = None
+        click(qtbot, win.start_button)
+        end = wait_end(qtbot, win)
+        if end["status"] == "completed" or not any(t in win.message.text()
+                                                   for t in LINK_TROUBLE):  # fmt: skip
+            break
+        print(f"\nstarting again after: {win.message.text()}")
+    assert end["status"] == "completed", end
     for width, height in SIZES:
         win.resize(width, height)
         qtbot.waitUntil(lambda w=width, h=height: win.size() == QtCore.QSize(w, h), timeout=5000)

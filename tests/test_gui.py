@@ -11,6 +11,7 @@ import gc
 import os
 import signal
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -267,3 +268,37 @@ def test_device_lost_while_idle_is_noticed(qtbot, win):
     qtbot.waitUntil(lambda: win.state == State.ERROR, timeout=15000)
     assert win.connect_button.text() == "Connect" and win.link is None
     assert "stopped answering" in win.message.text()
+
+
+@pytest.mark.slow  # the worker's imports run at nice 19: on a loaded machine that takes minutes
+def test_computation_worker_lowest_priority_results_errors_and_a_crash(tmp_path):
+    """The GUI's computation process: lowered before its imports, answers in order, says when
+    a job computes (its own clock), fails a job whose process died, and starts again."""
+    from smabench.gui.fitjob import fit_session, shown_cycle
+    from smabench.gui.worker import WORKER_NICE, ComputeWorker
+    from smabench.sessions import SessionError
+
+    w = ComputeWorker()
+    try:
+        w.start()
+        assert w.ready.wait(120)
+        assert os.getpriority(os.PRIO_PROCESS, w.pid) == WORKER_NICE
+        assert "libQt6" not in Path(f"/proc/{w.pid}/maps").read_text()  # no Qt in the worker
+        assert w.submit(shown_cycle, (2.0,)).result(60) == 3
+        with pytest.raises(SessionError, match="no such session"):
+            w.submit(fit_session, (tmp_path / "none", "sigmoid", None)).result(60)
+        assert [j.end_t is not None and j.end_t >= j.begin_t for j in w.finished] == [True] * 2
+        slow = w.submit(time.sleep, (60.0,))
+        deadline = time.monotonic() + 60
+        while not w.computing and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert w.computing and w.current.end_t is None
+        first = w.pid
+        os.kill(first, signal.SIGKILL)
+        with pytest.raises(RuntimeError, match="stopped"):
+            slow.result(60)
+        assert not w.computing
+        assert w.submit(shown_cycle, (0.0,)).result(120) == 1 and w.pid != first
+    finally:
+        w.close()
+    assert not w.alive

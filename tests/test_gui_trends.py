@@ -29,17 +29,6 @@ from smabench.sessions import CYCLE_COLUMNS, CYCLES_FILE  # noqa: E402
 RATE_HZ = 200.0
 
 
-def dispose(win) -> None:
-    """Close the window and destroy its Qt objects here, on the GUI thread (a later garbage
-    collection in another thread would run Qt destructors there)."""
-    import gc
-
-    win.close()
-    win.deleteLater()
-    QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
-    gc.collect()
-
-
 def rows_for(t: np.ndarray, period_s: float = 10.0, measured: bool = True) -> np.ndarray:
     """Plot rows of cycles: estimated T a sine, measured T 3 K below it, position follows."""
     phase = 2 * np.pi * t / period_s
@@ -198,7 +187,7 @@ def test_window_follows_the_running_sessions_cycles(qtbot, tmp_path):
     for _ in range(TREND_EVERY):
         win.on_frame()
     assert win.trend_plots.c_stroke.getData()[0].size == 2
-    dispose(win)
+    win.close()
 
 
 @pytest.mark.slow
@@ -243,7 +232,7 @@ def test_live_session_with_a_thermocouple_plots_measured_and_trends(qtbot, tmp_p
     np.testing.assert_allclose(stroke, tail.column("position_max_mm")
                                - tail.column("position_min_mm"))  # fmt: skip
     assert stroke[0] > 1.0  # the first cycle's full stroke (3 s of cooling is short after it)
-    dispose(win)
+    win.close()
 
 
 # --------------------------------------------------------------------------- plans
@@ -394,7 +383,7 @@ def test_gui_runtime_scales_the_setpoint_lease_with_the_mock_speed(monkeypatch):
     cfg = win.devices_config()
     assert cfg["time_scale"] == 8.0 and cfg["mock"][cfg["mock"].index("--speed") + 1] == "8"
     assert headless.open_devices is remote.open_devices
-    dispose(win)
+    win.close()
 
 
 def test_replay_draws_a_recorded_measured_temperature_and_fits_on_it():

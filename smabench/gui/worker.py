@@ -114,7 +114,8 @@ class ComputeWorker:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._proc: subprocess.Popen | None = None
-        self._futures: dict[int, concurrent.futures.Future] = {}
+        # job id → (its future, the process it was sent to)
+        self._futures: dict[int, tuple[concurrent.futures.Future, subprocess.Popen]] = {}
         self._next_id = 0
         self.ready = threading.Event()
         self.current: JobTimes | None = None  # the job computing now
@@ -162,7 +163,7 @@ class ComputeWorker:
             self._start_locked()
             job_id = self._next_id
             self._next_id += 1
-            self._futures[job_id] = fut
+            self._futures[job_id] = (fut, self._proc)
             try:
                 _send(self._proc.stdin, (job_id, module, name, tuple(args)))
             except (OSError, ValueError) as exc:  # the worker died just now
@@ -185,17 +186,16 @@ class ComputeWorker:
                 self.finished = [*self.finished[-99:], times]
                 self.current = None
                 with self._lock:
-                    fut = self._futures.pop(job_id, None)
+                    fut, _ = self._futures.pop(job_id, (None, None))
                 if fut is not None:
                     fut.set_result(msg[3]) if kind == "done" else fut.set_exception(msg[3])
         code = proc.wait()
-        with self._lock:
-            if self._proc is proc:  # not a replaced worker: its jobs are lost
-                lost, self._futures = self._futures, {}
+        with self._lock:  # the jobs sent to this process are lost
+            lost = [job for job, (_, to) in self._futures.items() if to is proc]
+            futures = [self._futures.pop(job)[0] for job in lost]
+            if self._proc is proc:
                 self.current = None
-            else:
-                lost = {}
-        for fut in lost.values():
+        for fut in futures:
             fut.set_exception(RuntimeError(f"the computation process stopped (exit {code})"))
 
     def close(self, timeout_s: float = 2.0) -> None:
@@ -215,5 +215,6 @@ class ComputeWorker:
                 proc.wait()
         with self._lock:
             lost, self._futures = self._futures, {}
-        for fut in lost.values():
-            fut.set_exception(RuntimeError("the computation process was closed"))
+        for fut, _ in lost.values():
+            if not fut.done():
+                fut.set_exception(RuntimeError("the computation process was closed"))

@@ -217,7 +217,7 @@ def test_session_with_the_real_firmware_in_simavr(tmp_path):
     )
     seen: dict[str, tuple[float, float, float]] = {}  # phase → (AVR s, plant °C, plant A)
 
-    with MockBench(2.0, firmware="emulated", rtu=False) as bench:
+    with MockBench(2.0, firmware="emulated", rtu=False, realtime=True) as bench:
         plant = bench.link.plant
 
         def on_sample(row: dict) -> None:

@@ -141,7 +141,9 @@ def test_broken_store_is_one_line_and_exit_2(store, capsys):
 # ----------------------------------------------------------------------------- mock helpers
 @pytest.fixture
 def bench():
-    with MockBench(load_kg=1.0, rtu=False) as b:
+    # the device thread real-time where allowed, as in `smabench mock`: it stands in for a
+    # microcontroller, which a busy host does not slow (its lease and host timeout run on)
+    with MockBench(load_kg=1.0, rtu=False, realtime=True) as b:
         yield b
 
 

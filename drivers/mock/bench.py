@@ -53,11 +53,23 @@ FIRMWARES = ("python", "emulated")
 PR_SET_PDEATHSIG = 1
 
 
+DEVICE_RT_PRIORITY = 10
+"""SCHED_FIFO priority of the stand-in devices with ``realtime`` (the Python firmware's thread,
+the simavr harness), where allowed: below the host's loop and link thread (20)."""
+
+
 def die_with_parent() -> None:
     """preexec_fn: the child gets SIGTERM when the mock process dies, even by SIGKILL (Linux)."""
     with contextlib.suppress(OSError, AttributeError):
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+
+
+def _realtime_child() -> None:
+    """preexec_fn: :func:`die_with_parent`, and SCHED_FIFO where allowed (else unchanged)."""
+    die_with_parent()
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DEVICE_RT_PRIORITY))
 
 
 @dataclass(frozen=True)
@@ -89,9 +101,13 @@ class EmulatedDriver:
         bootloader: bool = False,
         blank: bool = False,
         thermocouple: bool = False,
+        realtime: bool = False,
     ) -> None:
-        """``bootloader``: boot the Arduino bootloader (:data:`BOOTLOADER_HEX`) with the auto-reset
-        of a Nano (every open of the port resets it); ``blank``: no application in the flash;
+        """``realtime``: the harness at SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed (it
+        stands in for a microcontroller: starved by host load, it would fall silent while the
+        host's link and telemetry timeouts run on); ``bootloader``: boot the Arduino
+        bootloader (:data:`BOOTLOADER_HEX`) with the auto-reset of a Nano (every open of the
+        port resets it); ``blank``: no application in the flash;
         ``thermocouple``: the emulated MAX31855 reads the plant's wire temperature (else none
         is fitted)."""
         self.thermocouple = thermocouple
@@ -113,7 +129,7 @@ class EmulatedDriver:
             stderr=subprocess.DEVNULL,
             text=True,
             bufsize=1,
-            preexec_fn=die_with_parent,
+            preexec_fn=_realtime_child if realtime else die_with_parent,
         )
         first = self.proc.stdout.readline().strip()
         if not first.startswith("PTY "):
@@ -191,8 +207,11 @@ class MockBench:
         sensor_map: str = SENSOR_MAP,
         adapter_latency_s: float = 0.0,
         thermocouple: bool = False,
+        realtime: bool = False,
     ) -> None:
-        """``trace``: a CSV path for what the plant really got (:class:`PlantTrace`);
+        """``realtime``: at real-time speed (1), the stand-in driver (the Python firmware's thread
+        or the simavr harness) at SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed;
+        ``trace``: a CSV path for what the plant really got (:class:`PlantTrace`);
         ``bootloader``, ``blank``: see :class:`EmulatedDriver` (emulated firmware only);
         ``sensor_map``: the register map the sensor serves (any shipped map or a path);
         ``adapter_latency_s``: every sensor answer held this long, as by an FTDI USB/RS-485
@@ -214,6 +233,7 @@ class MockBench:
         self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
         self.speed = speed
         self.firmware = firmware
+        self.realtime = realtime and speed <= 1.0  # faster: more CPU than a device would take
         self.tcp_port = tcp_port
         self.rtu = rtu
         self.device: SerialDevice | None = None
@@ -256,7 +276,10 @@ class MockBench:
         """Start every part; returns where to connect."""
         try:
             if self.firmware == "python":
-                self.device = SerialDevice(speed=self.speed, on_step=self._couple).start()
+                self.device = SerialDevice(
+                    speed=self.speed, on_step=self._couple,
+                    thread_priority=DEVICE_RT_PRIORITY if self.realtime else None,
+                ).start()  # fmt: skip
                 driver_port = self.device.port_name
             else:
                 self.emulated = EmulatedDriver(
@@ -264,6 +287,7 @@ class MockBench:
                     bootloader=self.bootloader,
                     blank=self.blank,
                     thermocouple=self.thermocouple,
+                    realtime=self.realtime,
                 )
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()

@@ -78,6 +78,8 @@ class SerialDevice:
             overloaded machine), device time skips ahead instead of running a burst of steps.
         boot_delay_s: None (default): no auto-reset. A number: every open of the port resets
             the device, silent for this long (device time, s) before a fresh firmware starts.
+        thread_priority: SCHED_FIFO priority for the device thread where allowed (a
+            microcontroller is not slowed by host load); None: normal scheduling.
     """
 
     def __init__(
@@ -90,6 +92,7 @@ class SerialDevice:
         on_step: StepHook | None = None,
         max_catch_up_ms: float = 100.0,
         boot_delay_s: float | None = None,
+        thread_priority: int | None = None,
     ) -> None:
         if speed <= 0 or step_ms <= 0:
             raise ValueError("speed and step_ms must be > 0")
@@ -114,6 +117,7 @@ class SerialDevice:
         self.dropped_bytes = 0  # device -> host, lost because nobody read the port
         self.skipped_ms = 0.0
         self.boot_delay_s = boot_delay_s
+        self.thread_priority = thread_priority
         self.resets = 0  # auto-resets (port opened by the host)
         self.boot_end_ms: float | None = None  # device time the firmware (re)starts, while booting
         self._inotify: int | None = None
@@ -237,6 +241,11 @@ class SerialDevice:
         return False
 
     def _run(self) -> None:
+        if self.thread_priority is not None:
+            try:  # this thread only
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self.thread_priority))
+            except (OSError, AttributeError) as exc:
+                log.info("mock device thread stays at normal scheduling (%s)", exc)
         wall0 = time.monotonic()
         dev0 = self.device_ms
         paused_at: float | None = None

@@ -56,6 +56,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         sensor_map=args.sensor_map,
         adapter_latency_s=args.adapter_latency_ms / 1000.0,
         thermocouple=args.thermocouple,
+        realtime=args.speed <= 1.0,  # the simavr harness too, started before the threads below
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)

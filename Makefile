@@ -44,9 +44,9 @@ lint: venv
 test-python: venv
 	$(VENV)/bin/pytest -q --durations=20
 
-# the emulator tests in test-python need the .elf and the simavr harness
+# the emulator tests in test-python need the .elf, the simavr harness and the watchdog image
 firmware-build: sysdeps
-	$(MAKE) -C firmware elf sim
+	$(MAKE) -C firmware elf sim wdt-elf
 
 # C host tests (ASan/UBSan), the frame-decoder fuzz run, the firmware smoke test in simavr
 test-firmware: sysdeps

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 import logging
 import math
+import os
 import signal
 import subprocess
 import sys
@@ -88,8 +89,23 @@ def cmd_mock(args: argparse.Namespace) -> int:
         while not done.wait(0.2):
             pass
     finally:
+        # a stop that hangs (seen once: an orphaned real-time mock still running 21 min after
+        # its parent died) must not leave a real-time process behind: exit anyway after 10 s
+        guard = threading.Timer(MOCK_STOP_LIMIT_S, _exit_stuck_mock)
+        guard.daemon = True
+        guard.start()
         bench.stop()
+        guard.cancel()
     return 0
+
+
+MOCK_STOP_LIMIT_S = 10.0
+"""Longest wait for the mock bench to stop before the process exits regardless, s."""
+
+
+def _exit_stuck_mock() -> None:
+    log.error("mock bench did not stop within %.0f s: exiting", MOCK_STOP_LIMIT_S)
+    os._exit(1)
 
 
 def _control_loop(bench, done: threading.Event) -> None:

@@ -19,6 +19,7 @@ import pytest
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 pytest.importorskip("pytestqt")
 
+from gui_support import start_until_running  # noqa: E402
 from PySide6 import QtCore, QtGui, QtWidgets  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
@@ -73,33 +74,16 @@ def wait_end(qtbot, w: MainWindow, timeout_ms: int = 40000) -> dict:
     return w.last_end
 
 
-LINK_TROUBLE = ("did not answer", "stopped answering")
 
 
 def start_heating(qtbot, w: MainWindow) -> None:
     """A long heating cycle, running with the output on (the driver measures > 0.5 A).
 
-    On a loaded machine the mock bench may miss the handshake (seen at load average 12 on two
-    cores) or its link may drop (the kernel's tty worker that carries the pty's bytes waited
-    0.2–0.8 s for a CPU, past the driver's 0.25 s host timeout: the output turns itself off, as
-    it must). Neither is the state under test: an operator presses Start again, so does this
-    test (at most twice), saying why."""
+    Link trouble before the state under test: see :func:`gui_support.start_until_running`."""
     short_cycles(qtbot, w, cycles=3, heat_s=60.0)
-    for attempt in range(3):
-        w.last_end = None
-        qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
-        # running, or stopped trying (refused, or the connection failed)
-        qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
-            w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
-        if w.state == State.RUNNING:
-            qtbot.waitUntil(lambda: (w.status.get("readout", {}).get("current_a") or 0) > 0.5
-                            or w.state != State.RUNNING, timeout=30000)  # fmt: skip
-            if w.state == State.RUNNING:
-                return
-        if attempt == 2 or not any(t in w.message.text() for t in LINK_TROUBLE):
-            break
-        print(f"\nstarting again after: {w.message.text()}")
-    raise AssertionError((w.state, w.message.text(), w.last_end, w.sm.history[-4:]))
+    start_until_running(
+        qtbot, w, lambda: qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
+    )
 
 
 def press_estop_key(qtbot, target: QtWidgets.QWidget, key=Qt.Key.Key_Escape) -> float:

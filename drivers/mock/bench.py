@@ -51,6 +51,9 @@ BOOTLOADER_HEX = Path(
 SENSOR_MAP = "generic-rs485-laser"
 FIRMWARES = ("python", "emulated")
 PR_SET_PDEATHSIG = 1
+REALTIME_MAX_SPEED = 5.0
+"""Fastest mock speed (device time / wall time) still run real-time with ``realtime``: at 5× a
+mock takes about a third of a core; faster ones take more than a stand-in device should."""
 
 
 DEVICE_RT_PRIORITY = 10
@@ -233,7 +236,7 @@ class MockBench:
         self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
         self.speed = speed
         self.firmware = firmware
-        self.realtime = realtime and speed <= 1.0  # faster: more CPU than a device would take
+        self.realtime = realtime and speed <= REALTIME_MAX_SPEED
         self.tcp_port = tcp_port
         self.rtu = rtu
         self.device: SerialDevice | None = None

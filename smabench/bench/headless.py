@@ -57,7 +57,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         sensor_map=args.sensor_map,
         adapter_latency_s=args.adapter_latency_ms / 1000.0,
         thermocouple=args.thermocouple,
-        realtime=args.speed <= 1.0,  # the simavr harness too, started before the threads below
+        realtime=True,  # up to REALTIME_MAX_SPEED; the simavr harness too, started before
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -65,12 +65,12 @@ def cmd_mock(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, lambda *_: done.set())
     ports = bench.start()
-    if args.speed <= 1.0:
+    if bench.realtime:
         # its threads (the driver's device thread, the sensor's server) then answer within the
         # scheduler's real-time latency whatever else runs, as the microcontroller and sensor
         # do: a nice value alone loses to every process at the same nice (tests run at −10) and
-        # to other sessions' process groups (autogroup). At real time it uses ≈ 20 % of a core;
-        # a faster mock (more CPU, no real device) keeps normal scheduling
+        # to other sessions' process groups (autogroup). At real time it uses ≈ 20 % of a core,
+        # at 5× about a third; a faster mock (more CPU) keeps normal scheduling
         realtime_process()
     try:
         print(

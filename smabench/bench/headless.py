@@ -61,9 +61,13 @@ def cmd_mock(args: argparse.Namespace) -> int:
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
-    done = threading.Event()
+    done = threading.Event()  # set by the stdin control thread (EOF, quit)
+    signalled: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, lambda *_: done.set())
+        # only a list append, no lock: a handler that called done.set() deadlocked the mock when
+        # a second signal (SIGTERM on the parent's death, then SIGHUP) interrupted the first
+        # handler inside the Event's lock (an orphaned real-time mock, seen with gdb)
+        signal.signal(sig, lambda signum, _frame: signalled.append(signum))
     ports = bench.start()
     if bench.realtime:
         # its threads (the driver's device thread, the sensor's server) then answer within the
@@ -86,8 +90,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
             threading.Thread(
                 target=_control_loop, args=(bench, done), name="mock-control", daemon=True
             ).start()
-        while not done.wait(0.2):
-            pass
+        while not (signalled or done.is_set()):
+            time.sleep(0.2)
     finally:
         # a stop that hangs (seen once: an orphaned real-time mock still running 21 min after
         # its parent died) must not leave a real-time process behind: exit anyway after 10 s

@@ -4,6 +4,7 @@ raw testing-machine exports, bad input, local processes vs a Dask cluster."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -240,12 +241,22 @@ def test_local_processes_and_dask_cluster_give_identical_results(tmp_path):
     assert local["phase_diagram"]["As"]["slope_MPa_per_K"] > 0
 
 
-@pytest.mark.slow  # the Dask client tries for its connect timeout
-def test_unreachable_scheduler_is_one_line(tmp_path, run_cli):
+@pytest.mark.slow  # the Dask client tries for its connect timeout (1 s here, 10 s by default)
+def test_unreachable_scheduler_is_one_line(tmp_path, cli):
     folder = _bench_session(tmp_path / "s", Branches(round_k=2.0), 3, 1.0)
-    proc = run_cli("characterize", folder, "--json", tmp_path / "o.json", "--scheduler",
-                   "tcp://127.0.0.1:9")  # fmt: skip
-    assert proc.returncode == 2 and "Dask scheduler" in proc.stderr
+    t0 = time.monotonic()
+    proc = cli("characterize", folder, "--json", tmp_path / "o.json", "--scheduler",
+               "tcp://127.0.0.1:9", "--scheduler-timeout-s", "1")  # fmt: skip
+    waited_s = time.monotonic() - t0
+    assert proc.returncode == 2, proc.stderr
+    err = proc.stderr.strip().splitlines()
+    assert len(err) == 1 and "cannot reach the Dask scheduler tcp://127.0.0.1:9" in err[0], err
+    assert "after 1 s" in err[0], err  # the timeout given is the one the client used
+    assert waited_s >= 1.0  # it kept trying for that long, not one refused connect
+    assert not (tmp_path / "o.json").exists()
+    proc = cli("characterize", folder, "--json", tmp_path / "o.json", "--scheduler",
+               "tcp://127.0.0.1:9", "--scheduler-timeout-s", "0")  # fmt: skip
+    assert proc.returncode == 2 and "--scheduler-timeout-s" in proc.stderr
 
 
 @pytest.mark.slow

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 from smabench.analysis.data import AnalysisError
 from smabench.argtypes import positive
+from smabench.tasks import add_scheduler_timeout
 
 
 def add_arguments(s: argparse.ArgumentParser) -> None:
@@ -36,6 +37,7 @@ def add_arguments(s: argparse.ArgumentParser) -> None:
         "processes or on the Dask cluster of --scheduler; --json gets {'sessions': [...]}",
     )
     s.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (with --each)")
+    add_scheduler_timeout(s)
     s.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
 
 
@@ -78,7 +80,7 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
     cands = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates \
         else None  # fmt: skip
     tasks = [(str(p), args.wire_length_mm, args.wire_diameter_mm, cands) for p in args.sessions]
-    docs = run_tasks(analyse_one, tasks, args.scheduler, args.workers)
+    docs = run_tasks(analyse_one, tasks, args.scheduler, args.workers, args.scheduler_timeout_s)
     for d in docs:
         print(f"{d['session']}: cause {d['cause']} (gain {d['gain']:.1%})")
     if args.json:

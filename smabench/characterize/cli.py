@@ -18,6 +18,7 @@ import numpy as np
 from smabench.characterize.e3097 import TEMPERATURE_KEYS
 from smabench.characterize.run import Overrides, characterize_many, strip_private
 from smabench.sessions import atomic_write, atomic_write_json
+from smabench.tasks import add_scheduler_timeout
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +95,7 @@ def cmd_characterize(args: argparse.Namespace) -> int:
         keep_cycles="auto" if args.report else (),
         scheduler=args.scheduler,
         workers=args.workers,
+        scheduler_timeout_s=args.scheduler_timeout_s,
     )
     for s in doc["sessions"]:
         for w in s["warnings"]:
@@ -133,6 +135,7 @@ def add_commands(sub) -> None:
         help="Dask scheduler address (tcp://HOST:PORT): one session per task on that cluster "
         "(default: local worker processes)",
     )
+    add_scheduler_timeout(s)
     s.add_argument("--workers", type=int, help="local worker processes (default: one per CPU)")
     s.set_defaults(func=cmd_characterize)
 

@@ -31,7 +31,7 @@ from smabench.sessions import (
     read_header,
     sample_files,
 )
-from smabench.tasks import run_tasks
+from smabench.tasks import SCHEDULER_TIMEOUT_S, run_tasks
 
 log = logging.getLogger(__name__)
 
@@ -201,6 +201,7 @@ def characterize_many(
     keep_cycles: Sequence[int] | str = (),
     scheduler: str | None = None,
     workers: int | None = None,
+    scheduler_timeout_s: float = SCHEDULER_TIMEOUT_S,
 ) -> dict[str, Any]:
     """The ``smabench characterize`` JSON document for several sessions (plus ``_branches``
     inside each session entry when ``keep_cycles``; strip before writing)."""
@@ -212,6 +213,7 @@ def characterize_many(
          for p in paths],  # fmt: skip
         scheduler=scheduler,
         workers=workers,
+        scheduler_timeout_s=scheduler_timeout_s,
     )
     return {
         "format": "smabench-characterize/1",

@@ -170,7 +170,7 @@ def test_no_bootloader_answering_is_one_line_naming_both_baud_rates(capsys, monk
 @pytest.mark.slow
 @pytest.mark.timeout(120)
 @requires_emulator
-def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, tmp_path):
+def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, capsys, tmp_path):
     """Blank emulated Nano → smabench firmware flash → smabench run → rows in the CSV."""
     from smabench.bench.headless import MockProcess
 
@@ -182,11 +182,11 @@ def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, tmp_path):
             blank.connect()
         blank.close()
 
-        out = run_cli("firmware", "flash", "--port", port, "--hex", APP_HEX)
-        assert out.returncode == 0, out.stderr
-        assert "written and verified at 115200 baud" in out.stdout
-        m = re.search(r"firmware: (\S+) (\d+\.\d+\.\d+) \(protocol (\d+)", out.stdout)
-        assert m, out.stdout
+        code, stdout, stderr = flash_cli(capsys, "--port", port, "--hex", APP_HEX)
+        assert code == 0, stderr
+        assert "written and verified at 115200 baud" in stdout
+        m = re.search(r"firmware: (\S+) (\d+\.\d+\.\d+) \(protocol (\d+)", stdout)
+        assert m, stdout
         name, version = m[1], m[2]
 
         out = run_cli(
@@ -211,15 +211,15 @@ def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(120)
 @requires_emulator
-def test_old_nano_bootloader_is_flashed_at_57600_after_115200_fails(run_cli, harness_factory):
+def test_old_nano_bootloader_is_flashed_at_57600_after_115200_fails(capsys, harness_factory):
     if not OLD_NANO_HEX.is_file():
         pytest.skip("apt-get install arduino-core-avr")
     h = harness_factory(OLD_NANO_HEX)
-    out = run_cli("firmware", "flash", "--port", h.port, "--hex", APP_HEX)
-    assert out.returncode == 0, out.stderr
-    assert "115200 baud (optiboot)" in out.stdout  # tried first, and failed
-    assert "written and verified at 57600 baud" in out.stdout
-    assert "firmware: SMA-CD328" in out.stdout
+    code, stdout, stderr = flash_cli(capsys, "--port", h.port, "--hex", APP_HEX)
+    assert code == 0, stderr
+    assert "115200 baud (optiboot)" in stdout  # tried first, and failed
+    assert "written and verified at 57600 baud" in stdout
+    assert "firmware: SMA-CD328" in stdout
     # three opens of the port (115200, 57600, identify), three external resets on the device
     resets = h.wait_resets(3)
     assert [mcusr & EXTRF for _, mcusr in resets].count(EXTRF) >= 3

@@ -29,10 +29,14 @@ import tempfile
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from smabench.control.reference import BENCHMARK_REFERENCES
+
+if TYPE_CHECKING:
+    from smabench.protocols import ProtocolSettings
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +54,7 @@ class Case:
     load_kg: float
     controller: str
     effect: str = ""
+    lead_in_s: float | None = None  # hold before the first period, s (None: the protocol's 8 s)
 
 
 def all_cases(
@@ -64,17 +69,24 @@ def all_cases(
     ]
 
 
+def protocol_settings(case: Case) -> ProtocolSettings:
+    """The case's reference: ``offset ± 0.8 mm`` about the middle of the reachable stroke."""
+    from smabench.protocols import ProtocolSettings
+
+    lead_in = {} if case.lead_in_s is None else {"lead_in_s": case.lead_in_s}
+    return ProtocolSettings(
+        name=case.kind, cycles=case.cycles, period_s=case.period_s, amplitude_mm=0.8, **lead_in
+    )
+
+
 def run_case(case: Case, speed: float = 5.0, rate_hz: float = 400.0) -> dict:
     """One session on its own mock; returns the figures."""
     from smabench.bench.headless import MockProcess, open_devices
     from smabench.bench.session_run import RunSettings, run_session
     from smabench.control import ControllerSettings
-    from smabench.protocols import ProtocolSettings
     from smabench.sessions import load_session
 
-    proto = ProtocolSettings(
-        name=case.kind, cycles=case.cycles, period_s=case.period_s, amplitude_mm=0.8
-    )
+    proto = protocol_settings(case)
     with tempfile.TemporaryDirectory(prefix="smabench-bench-control-") as tmp:
         settings = RunSettings(
             load_kg=case.load_kg,
@@ -113,11 +125,8 @@ def run_case_offline(case: Case, period_s: float = 0.0125) -> dict:
     from smabench.control import ControllerSettings, build_controller
     from smabench.physics.effects import Effects
     from smabench.physics.wire import PAPER_WIRE
-    from smabench.protocols import ProtocolSettings
 
-    proto = ProtocolSettings(
-        name=case.kind, cycles=case.cycles, period_s=case.period_s, amplitude_mm=0.8
-    )
+    proto = protocol_settings(case)
     controller = build_controller(
         proto, ControllerSettings(mode=case.controller), case.load_kg, PAPER_WIRE, 2.0
     )

@@ -205,10 +205,13 @@ def test_example_plan_on_the_mock_killed_and_resumed(tmp_path):
     """End to end on the mock bench: the example plan, SIGKILL during step 2 (a power loss),
     `plan resume` finishes it; every step's session is complete and linked."""
     text = EXAMPLE.read_text().replace('out = "sessions/plans-out"', f'out = "{tmp_path}"')
-    # one cycle per step and a short rest: the kill, the resume and the links are what is tested
-    # (the plan's full length is its dry run's, above), and each step still ends on its own
+    # one cycle per step, a short rest and cooling: the kill, the resume and the links are what
+    # is tested (the plan's full length is its dry run's, above), and each step still ends on
+    # its own (its cooling ends by the protocol's settling or timeout, 4-5 s of device time)
     for long, short in (("cycles = 3", "cycles = 1"), ("cycles = 2", "cycles = 1"),
-                        ("rest_s = 5.0", "rest_s = 1.0")):  # fmt: skip
+                        ("rest_s = 5.0", "rest_s = 1.0"), ("min_cool_s = 9.0", "min_cool_s = 4.0"),
+                        ("min_cool_s = 8.0", "min_cool_s = 4.0"),
+                        ("cool_timeout_s = 12.0", "cool_timeout_s = 5.0")):  # fmt: skip
         assert long in text
         text = text.replace(long, short)
     p = tmp_path / "example.toml"

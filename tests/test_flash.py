@@ -16,6 +16,7 @@ import os
 import queue
 import re
 import shutil
+import signal
 import subprocess
 import threading
 import time
@@ -170,7 +171,7 @@ def test_no_bootloader_answering_is_one_line_naming_both_baud_rates(capsys, monk
 @pytest.mark.slow
 @pytest.mark.timeout(120)
 @requires_emulator
-def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, capsys, tmp_path):
+def test_blank_nano_flashed_then_a_session_runs_on_it(cli, capsys, tmp_path):
     """Blank emulated Nano → smabench firmware flash → smabench run → rows in the CSV."""
     from smabench.bench.headless import MockProcess
 
@@ -189,11 +190,15 @@ def test_blank_nano_flashed_then_a_session_runs_on_it(run_cli, capsys, tmp_path)
         assert m, stdout
         name, version = m[1], m[2]
 
-        out = run_cli(
-            "run", "--port", port, "--sensor", mock.ports.sensor_tcp, "--load-kg", "2",
-            "--cycles", "1", "--current-a", "1.0", "--heat-s", "1", "--cool-timeout-s", "2",
-            "--out", tmp_path, "--session-id", "flashed", "--quiet",
-        )  # fmt: skip
+        sigterm = signal.getsignal(signal.SIGTERM)
+        try:  # smabench run in this process (no interpreter start); it sets its SIGTERM handler
+            out = cli(
+                "run", "--port", port, "--sensor", mock.ports.sensor_tcp, "--load-kg", "2",
+                "--cycles", "1", "--current-a", "1.0", "--heat-s", "1", "--cool-timeout-s", "1",
+                "--out", tmp_path, "--session-id", "flashed", "--quiet",
+            )  # fmt: skip
+        finally:
+            signal.signal(signal.SIGTERM, sigterm)
         assert out.returncode == 0, out.stderr
     folder = tmp_path / "flashed"
     meta = json.loads((folder / "session.json").read_text())

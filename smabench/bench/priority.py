@@ -16,26 +16,29 @@ LOOP_NICE = -10
 
 
 AUTOGROUP = "/proc/self/autogroup"
+"""The session's autogroup (sched(7), "The autogroup feature"): left as it is, see
+:func:`raise_priority`."""
 
 
 def raise_priority(nice: int = LOOP_NICE) -> bool:
     """Lower this process's nice value (children inherit it): the bench loop, and the mock
-    bench standing in for devices, win the CPU over drawing and other processes.
+    bench standing in for devices, win the CPU over drawing and other processes of the session.
 
-    With the kernel's autogroup scheduling on (Debian's default), a nice value only orders
-    processes within one session: the CPU is first shared equally between sessions, so a
-    compile or test run started from another terminal would still take half of it. The
-    session's own autogroup nice is lowered as well (sched(7), "The autogroup feature")."""
+    The session's autogroup nice (:data:`AUTOGROUP`) is NOT lowered: that would lift every
+    process of the session (a CPU-bound job started from the same terminal, the GUI's nice-19
+    computation worker) above the kernel's workers (nice 0, in no autogroup), and a kernel
+    worker carries every byte a serial port or pty receives; a thread reading the port waits
+    for it in poll()/read(). Beside two CPU-bound processes in a session at autogroup nice
+    -10, the pty's worker waited 0.34 s for a CPU while the link's SCHED_FIFO owner thread
+    waited in poll() for it (ftrace): no keepalive went out and the device's 0.25 s host
+    timeout turned the output off. What must not wait for other work runs SCHED_FIFO instead
+    (:func:`realtime_loop_thread`, the link's owner thread, the stand-in devices), which no
+    process of any session delays."""
     try:
         os.setpriority(os.PRIO_PROCESS, 0, nice)
     except OSError as exc:
         log.info("bench process stays at normal priority (%s)", exc)
         return False
-    try:
-        with open(AUTOGROUP, "w") as fh:
-            fh.write(str(nice))
-    except OSError as exc:  # no autogroup support (file missing), or it is off
-        log.debug("session autogroup nice unchanged (%s)", exc)
     return True
 
 

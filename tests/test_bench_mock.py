@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 
 from smabench.bench.headless import MockProcess, open_devices
+from smabench.bench.priority import realtime_loop_thread
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.protocols import ProtocolSettings
 from smabench.sessions import FLAG_SENSOR_INVALID, load_session
@@ -72,25 +73,37 @@ def _settings(tmp_path: Path, sid: str, **proto) -> RunSettings:
 
 
 class _Session:
-    """``run_session`` on its own thread; :meth:`wait_rows` waits until it has recorded rows."""
+    """``run_session`` on its own thread, real-time where allowed as `smabench run` and the
+    GUI's runtime run their loop (it renews the 0.25 s setpoint lease); :meth:`wait_rows` waits
+    until it has recorded rows. ``on_sample`` is called with every row too."""
 
-    def __init__(self, settings: RunSettings, source, sensor) -> None:
+    def __init__(self, settings: RunSettings, source, sensor, devices=None, on_sample=None):
         self.rows = 0
         self.enough = threading.Event()
         self.need = 0
         self.out: dict = {}
-        self.thread = threading.Thread(target=self._run, args=(settings, source, sensor))
+        self._on_row = on_sample
+        self.thread = threading.Thread(target=self._run, args=(settings, source, sensor, devices))
         self.thread.start()
 
     def _on_sample(self, row: dict) -> None:
+        if self._on_row is not None:
+            self._on_row(row)
         self.rows += 1
         if self.rows >= self.need:
             self.enough.set()
 
-    def _run(self, settings, source, sensor) -> None:
+    def _run(self, settings, source, sensor, devices) -> None:
         self.out["folder"], self.out["result"] = run_session(
-            settings, source, sensor, on_sample=self._on_sample
-        )
+            settings, source, sensor, devices, on_sample=self._on_sample,
+            on_start=lambda _runtime: realtime_loop_thread(),
+        )  # fmt: skip
+
+    def result(self, timeout_s: float = 120.0):
+        """(folder, result) once the session ended (a generous bound, not a measurement)."""
+        self.thread.join(timeout_s)
+        assert not self.thread.is_alive(), f"session still running after {timeout_s} s"
+        return self.out["folder"], self.out["result"]
 
     def wait_rows(self, n: int, timeout_s: float = 30.0) -> None:
         self.need = n
@@ -228,10 +241,10 @@ def test_session_with_the_real_firmware_in_simavr(tmp_path):
 
         source, sensor = open_devices(bench.ports.driver, bench.ports.sensor_tcp, settings)
         try:
-            folder, result = run_session(
+            folder, result = _Session(
                 settings, source, sensor, {"current_driver": {"name": source.info.name}},
                 on_sample=on_sample,
-            )  # fmt: skip
+            ).result()  # fmt: skip
         finally:
             source.close()
             sensor.close()

@@ -3,10 +3,12 @@ through its bootloader with avrdude, then identify the new firmware over the pro
 
 The board's bootloader decides the baud rate: optiboot (Nano "ATmega328P", Uno) talks at 115200,
 the old Nano bootloader (ATmegaBOOT, "ATmega328P (Old Bootloader)") at 57600; both are tried in
-that order. avrdude opens the port, which resets the board through DTR into the bootloader; it
-writes and verifies the flash page by page (STK500v1, ``-c arduino``) and leaves, and the
-bootloader starts the new application. Opening the port again for the handshake resets the board
-once more; the driver's handshake waits for the bootloader to hand over (``CurrentSource``).
+that order, each first with one STK500 GET_SYNC probe of about a second (a wrong baud rate costs
+avrdude its fixed 5 s serial timeout per try). avrdude opens the port, which resets the board
+through DTR into the bootloader; it writes and verifies the flash page by page (STK500v1,
+``-c arduino``) and leaves, and the bootloader starts the new application. Opening the port again
+for the handshake resets the board once more; the driver's handshake waits for the bootloader to
+hand over (``CurrentSource``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -38,6 +41,13 @@ AVRDUDE_TIMEOUT_S = 120.0  # a full 30 KB flash with verify takes about 10 s at 
 # has no option for that timeout with -c arduino. One try before the next baud rate (a board
 # that answers does so within its bootloader's ~1 s window after the reset), 3 on the last
 SYNC_ATTEMPTS, SYNC_ATTEMPTS_LAST = 1, 3
+# Before avrdude, each baud rate is probed: open the port (the board resets into its bootloader),
+# send STK500 GET_SYNC every PROBE_PERIOD_S and wait for INSYNC OK, PROBE_S at most (both
+# bootloaders wait about 1 s after a reset; in the emulator optiboot answered after 0.66 s, the
+# old Nano bootloader after 0.3 s). avrdude then runs only at the baud rate that answered; when
+# none does (or the port is no serial port), every baud rate goes to avrdude as before.
+STK_GET_SYNC, STK_INSYNC_OK = b"\x30\x20", b"\x14\x10"
+PROBE_S, PROBE_PERIOD_S = 1.2, 0.2
 EXIT_USAGE = 2
 EXIT_FAILED = 1
 
@@ -122,10 +132,48 @@ def _avrdude_reason(output: str) -> str:
     return lines[-1] if lines else "no output"
 
 
+def bootloader_answers(port: str, baud: int, window_s: float = PROBE_S) -> bool | None:
+    """Whether a bootloader answers STK500 GET_SYNC at ``baud`` within ``window_s`` of opening
+    the port (which resets the board into it); None when the port cannot be opened as a serial
+    port (then nothing is known)."""
+    import serial
+
+    try:
+        ser = serial.Serial(port, baud, timeout=PROBE_PERIOD_S)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        log.info("cannot probe %s at %d baud: %s", port, baud, exc)
+        return None
+    got = b""
+    try:
+        deadline = time.monotonic() + window_s
+        while time.monotonic() < deadline:
+            ser.write(STK_GET_SYNC)
+            got += ser.read(len(STK_INSYNC_OK))  # returns after PROBE_PERIOD_S at most
+            if STK_INSYNC_OK in got:
+                return True
+    except (serial.SerialException, OSError) as exc:
+        log.info("probe of %s at %d baud failed: %s", port, baud, exc)
+        return None
+    finally:
+        ser.close()
+    log.info("no bootloader at %d baud within %.1f s (%d bytes back)", baud, window_s, len(got))
+    return False
+
+
 def flash(port: str, hex_path: Path, bauds: tuple[tuple[int, str], ...] = BOOTLOADERS) -> int:
     """Write and verify ``hex_path`` through the bootloader; returns the baud rate that worked."""
     avrdude = find_avrdude()
     reasons = []
+    if len(bauds) > 1:  # probe: avrdude then skips the baud rates that cannot be right
+        for baud, name in bauds:
+            answered = bootloader_answers(port, baud)
+            if answered is None:
+                break
+            if answered:
+                bauds = ((baud, name),)
+                break
+            print(f"  {baud} baud ({name}): no answer to GET_SYNC within {PROBE_S:g} s",
+                  flush=True)  # fmt: skip
     for k, (baud, name) in enumerate(bauds):
         last = k == len(bauds) - 1
         attempts = SYNC_ATTEMPTS_LAST if last else SYNC_ATTEMPTS

@@ -222,12 +222,14 @@ def test_old_nano_bootloader_is_flashed_at_57600_after_115200_fails(capsys, harn
     h = harness_factory(OLD_NANO_HEX)
     code, stdout, stderr = flash_cli(capsys, "--port", h.port, "--hex", APP_HEX)
     assert code == 0, stderr
-    assert "115200 baud (optiboot)" in stdout  # tried first, and failed
+    # tried first, and failed: the probe, not avrdude's 5 s serial timeout
+    assert "115200 baud (optiboot): no answer to GET_SYNC" in stdout
     assert "written and verified at 57600 baud" in stdout
     assert "firmware: SMA-CD328" in stdout
-    # three opens of the port (115200, 57600, identify), three external resets on the device
-    resets = h.wait_resets(3)
-    assert [mcusr & EXTRF for _, mcusr in resets].count(EXTRF) >= 3
+    # four opens of the port (probes at 115200 and 57600, avrdude at 57600, identify), four
+    # external resets on the device
+    resets = h.wait_resets(4)
+    assert [mcusr & EXTRF for _, mcusr in resets].count(EXTRF) >= 4
 
 
 @pytest.mark.emulator

@@ -1,13 +1,154 @@
-"""What the GUI test files share: starting a session until it runs, on a loaded machine."""
+"""What the GUI test files share: windows, one bench window for several tests, and starting a
+session until it runs, on a loaded machine."""
 
 from __future__ import annotations
 
+import gc
 from collections.abc import Callable
+from pathlib import Path
 
+from PySide6 import QtCore, QtWidgets
+
+from smabench.gui.app import make_app
 from smabench.gui.state import State
+from smabench.gui.window import MainWindow
 
 LINK_TROUBLE = ("did not answer", "stopped answering")
 """Words of the GUI's message when the mock bench missed the handshake or its link dropped."""
+
+FAST_MOCK_SPEED = 4.0
+"""Mock bench speed (×) for tests that wait for a session to run its course, not for anything
+timed in real time (the E-STOP's key-to-output-off time runs on a real-time mock): protocol
+durations and recorded times are device time, so the session is the same, in a quarter of the
+wall time. The GUI's runtime scales the driver's setpoint lease, host timeout and telemetry
+period with the speed (the same wall-clock timing as at 1×; ``test_gui_trends``), and up to
+``smabench.drivers.mock.bench.REALTIME_MAX_SPEED`` (5×) the mock runs real-time scheduled."""
+
+
+def open_window(sessions_dir: str | Path, mock_speed: float = 1.0,
+                size: tuple[int, int] = (1280, 800)) -> MainWindow:  # fmt: skip
+    """A shown main window on the mock bench (not connected)."""
+    make_app()
+    w = MainWindow(sessions_dir, mock_speed=mock_speed)
+    w.resize(*size)
+    w.show()
+    return w
+
+
+def dispose(w: MainWindow) -> None:
+    """Close the window and destroy its Qt objects here, on the GUI thread (a later garbage
+    collection in another thread would run Qt destructors there)."""
+    w.close()
+    w.deleteLater()
+    QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
+    gc.collect()
+
+
+class SharedBench:
+    """One window and its connection to the mock bench (runtime process, mock process) for
+    several tests of a module, instead of a window, a runtime and a mock started and closed
+    for each. :meth:`for_test` gives each test the window as a fresh one would be: popups and
+    dialogs closed, no session running, an E-STOP acknowledged, every field, choice and tab as
+    when the window was made, its own sessions folder, nothing left of the previous test's
+    results. It stays connected when it is (a test that lost the bench leaves it not
+    connected; Start connects again, as for a fresh window)."""
+
+    def __init__(self, sessions_dir: Path, mock_speed: float = 1.0) -> None:
+        self.w = open_window(sessions_dir, mock_speed)
+        self.closed = False
+        self._entries = _entries(self.w)
+        self._tabs = (self.w.tabs.currentIndex(), self.w.settings_tabs.currentIndex())
+
+    def for_test(self, qtbot, sessions_dir: Path) -> MainWindow:
+        w = self.w
+        _close_overlays(w)
+        if w.state in (State.STARTING, State.RUNNING, State.PAUSED):  # a failed test's session
+            w.last_end = None
+            w.estop()
+            qtbot.waitUntil(lambda: w.last_end is not None or w.link is None, timeout=15000)
+        if w.state == State.CONNECTING:
+            qtbot.waitUntil(lambda: w.state != State.CONNECTING, timeout=60000)
+        w.acknowledge_estop()
+        # a fit still computing would draw into this test's Sessions tab
+        qtbot.waitUntil(lambda: not w.jobs.busy, timeout=180000)
+        _restore_entries(w, self._entries)
+        w.tabs.setCurrentIndex(self._tabs[0])
+        w.settings_tabs.setCurrentIndex(self._tabs[1])
+        w.set_sessions_dir(sessions_dir)
+        qtbot.waitUntil(lambda: not w.jobs.busy, timeout=10000)  # the list read
+        w.last_end = w.last_estop = w.estop_time = w.last_fit = None
+        w.pending_start = None
+        w._clear_live()  # no samples of the previous test's session in the plots
+        w.status = {}  # nor its last status (the runtime sends the next within 0.5 s)
+        w.say("")
+        assert w.state in (State.IDLE, State.DISCONNECTED, State.ERROR), w.sm.history[-4:]
+        return w
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            _close_overlays(self.w)
+            dispose(self.w)
+
+
+def _close_overlays(w: MainWindow) -> None:
+    """Popups, menus and dialogs a test left open (the E-STOP key closes them in a test that
+    passes; one that failed may not have got there)."""
+    for _ in range(5):
+        popup = QtWidgets.QApplication.activePopupWidget()
+        if popup is None:
+            break
+        popup.close()
+    modal = QtWidgets.QApplication.activeModalWidget()
+    if isinstance(modal, QtWidgets.QDialog):
+        modal.reject()
+    dialog = getattr(w, "_dialog", None)
+    if dialog is not None and dialog.isVisible():
+        dialog.reject()
+    QtWidgets.QApplication.processEvents()
+
+
+def _entry_widgets(w: MainWindow) -> dict[str, QtWidgets.QWidget]:
+    """What an operator can enter or choose: the settings fields, the protocol, the law, the
+    gain tables, the fit model and cycle, the mock's options."""
+    out: dict[str, QtWidgets.QWidget] = {f"field:{k}": f for k, f in w.fields.items()}
+    out.update({f"mode:{m}": b for m, b in w.mode_buttons.items()})
+    out.update({f"gain_table:{law}": b for law, b in w.gain_table_boxes.items()})
+    out.update(protocol=w.protocol, fit_model=w.fit_model, fit_cycle=w.fit_cycle,
+               use_mock=w.use_mock, use_real=w.use_real, mock_effect=w.mock_effect,
+               mock_thermocouple=w.mock_thermocouple)  # fmt: skip
+    return out
+
+
+def _entries(w: MainWindow) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for name, wdg in _entry_widgets(w).items():
+        if isinstance(wdg, QtWidgets.QLineEdit):
+            out[name] = wdg.text()
+        elif isinstance(wdg, QtWidgets.QComboBox):
+            out[name] = wdg.currentText()
+        elif isinstance(wdg, QtWidgets.QAbstractButton):
+            out[name] = wdg.isChecked()
+    out["custom_gains"] = dict(w.custom_gains)
+    return out
+
+
+def _restore_entries(w: MainWindow, entries: dict[str, object]) -> None:
+    """Back to ``entries`` (from :func:`_entries`): choices first, then the gain tables (which
+    rewrite their gain fields), then the fields' text."""
+    widgets = _entry_widgets(w)
+    for name, wdg in widgets.items():
+        if isinstance(wdg, QtWidgets.QComboBox):
+            wdg.setCurrentText(entries[name])
+        elif isinstance(wdg, QtWidgets.QRadioButton) and entries[name]:
+            wdg.setChecked(True)  # (its group unchecks the others)
+    for name, wdg in widgets.items():
+        if isinstance(wdg, QtWidgets.QCheckBox):
+            wdg.setChecked(entries[name])
+    for name, wdg in widgets.items():
+        if isinstance(wdg, QtWidgets.QLineEdit):
+            wdg.setText(entries[name])
+    assert _entries(w) == entries, "the shared window's entries were not restored"
 
 
 def start_until_running(qtbot, w, press_start: Callable[[], None]) -> None:
@@ -35,3 +176,35 @@ def start_until_running(qtbot, w, press_start: Callable[[], None]) -> None:
         qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR, State.DISCONNECTED),
                         timeout=15000)  # fmt: skip
     raise AssertionError((w.state, w.message.text(), w.last_end, w.sm.history[-4:]))
+
+
+def run_until_completed(qtbot, w, press_start: Callable[[], None],
+                        timeout_ms: int = 60000) -> dict | None:  # fmt: skip
+    """Press Start (``press_start``) and wait for the session's end; returns its end report
+    (None when it did not start). When it ended on link trouble, or the mock bench missed the
+    handshake (see :func:`start_until_running`; the GUI then says so and offers Connect), Start
+    is pressed again, at most twice, saying why. Any other end is returned as it is."""
+    for attempt in range(3):
+        w.last_end = None
+        press_start()
+        qtbot.waitUntil(lambda: w.last_end is not None or w.state in (
+            State.ERROR, State.DISCONNECTED) or (
+            w.state == State.IDLE and "Not started" in w.message.text()),
+            timeout=timeout_ms)  # fmt: skip
+        end = w.last_end
+        if (end is not None and end.get("status") == "completed") or attempt == 2 or not any(
+                t in w.message.text() for t in LINK_TROUBLE):  # fmt: skip
+            return end
+        print(f"\nstarting again after: {w.message.text()}")
+        qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR, State.DISCONNECTED),
+                        timeout=15000)  # fmt: skip
+    return end
+
+
+def last_to_use(request, fixture: str) -> bool:
+    """The running test is the last of its module (in this run) that uses ``fixture``: a
+    shared bench is closed after it, not at the module's end (its mock, at real time, takes a
+    fifth of a core, and its window redraws, under the tests after it)."""
+    users = [item for item in request.session.items if item.module is request.node.module
+             and fixture in getattr(item, "fixturenames", ())]  # fmt: skip
+    return bool(users) and users[-1] is request.node

@@ -7,7 +7,6 @@ Linux), and the test subtracts the time it pressed the key.
 
 from __future__ import annotations
 
-import gc
 import os
 import signal
 import time
@@ -19,11 +18,18 @@ import pytest
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 pytest.importorskip("pytestqt")
 
-from gui_support import start_until_running  # noqa: E402
+from gui_support import (  # noqa: E402
+    FAST_MOCK_SPEED,
+    SharedBench,
+    dispose,
+    last_to_use,
+    open_window,
+    run_until_completed,
+    start_until_running,
+)
 from PySide6 import QtCore, QtGui, QtWidgets  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
-from smabench.gui.app import make_app  # noqa: E402
 from smabench.gui.state import State  # noqa: E402
 from smabench.gui.window import MainWindow  # noqa: E402
 
@@ -36,22 +42,36 @@ MOCK_SPEED = 1.0
 
 @pytest.fixture
 def win(qtbot, tmp_path):
-    make_app()
-    w = MainWindow(tmp_path / "sessions", mock_speed=MOCK_SPEED)
+    """A fresh window, not connected."""
+    w = open_window(tmp_path / "sessions", MOCK_SPEED)
     qtbot.addWidget(w)
-    w.resize(1280, 800)
-    w.show()
     yield w
     dispose(w)
 
 
-def dispose(w: MainWindow) -> None:
-    """Close the window and destroy its Qt objects here, on the GUI thread (a later garbage
-    collection in another thread would run Qt destructors there)."""
-    w.close()
-    w.deleteLater()
-    QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
-    gc.collect()
+@pytest.fixture
+def fast_win(qtbot, tmp_path):
+    """A fresh window on a faster mock bench (a session that must run its course)."""
+    w = open_window(tmp_path / "sessions", FAST_MOCK_SPEED)
+    qtbot.addWidget(w)
+    yield w
+    dispose(w)
+
+
+@pytest.fixture(scope="module")
+def shared_bench(qapp, tmp_path_factory):
+    bench = SharedBench(tmp_path_factory.mktemp("bench") / "sessions", MOCK_SPEED)
+    yield bench
+    bench.close()
+
+
+@pytest.fixture
+def bench_win(request, qtbot, shared_bench, tmp_path):
+    """The module's one window on the mock bench, as a fresh one for this test
+    (:class:`gui_support.SharedBench`): a runtime and a mock started once, not per test."""
+    yield shared_bench.for_test(qtbot, tmp_path / "sessions")
+    if last_to_use(request, "bench_win"):
+        shared_bench.close()
 
 
 def type_into(qtbot, field, text: str) -> None:
@@ -104,11 +124,13 @@ def estop_latency_s(qtbot, w: MainWindow, pressed_t: float) -> float:
 
 
 @pytest.mark.slow
-def test_short_protocol_fills_the_plots_and_is_listed(qtbot, win, tmp_path):
+def test_short_protocol_fills_the_plots_and_is_listed(qtbot, fast_win, tmp_path):
+    win = fast_win
     short_cycles(qtbot, win)
-    qtbot.mouseClick(win.start_button, Qt.MouseButton.LeftButton)
-    end = wait_end(qtbot, win)
-    assert end["status"] == "completed", end
+    end = run_until_completed(
+        qtbot, win, lambda: qtbot.mouseClick(win.start_button, Qt.MouseButton.LeftButton)
+    )
+    assert end is not None and end["status"] == "completed", (end, win.message.text())
     assert win.state == State.IDLE
     win.on_frame()
     assert win.buffer.n == end["samples"] > 50
@@ -124,7 +146,8 @@ def test_short_protocol_fills_the_plots_and_is_listed(qtbot, win, tmp_path):
 @pytest.mark.parametrize(
     "key", [Qt.Key.Key_Escape, pytest.param(Qt.Key.Key_F12, marks=pytest.mark.slow)]
 )
-def test_estop_key_with_focus_in_a_field(qtbot, win, key):
+def test_estop_key_with_focus_in_a_field(qtbot, bench_win, key):
+    win = bench_win
     start_heating(qtbot, win)
     field = win.fit_cycle  # a field enabled during a run (the Sessions tab)
     field.setFocus()
@@ -153,7 +176,8 @@ def test_estop_with_nothing_connected_says_so(qtbot, win):
 
 
 @pytest.mark.slow
-def test_lost_device_closes_the_session_and_offers_connect(qtbot, win):
+def test_lost_device_closes_the_session_and_offers_connect(qtbot, bench_win):
+    win = bench_win
     start_heating(qtbot, win)
     os.kill(win.link.ports["mock_pid"], signal.SIGKILL)
     end = wait_end(qtbot, win, 10000)
@@ -182,8 +206,9 @@ def test_bench_gui_frame_time_with_an_hour_of_data(qtbot):
 
 
 @pytest.mark.slow
-def test_controller_mode_switches_live(qtbot, win):
+def test_controller_mode_switches_live(qtbot, bench_win):
     """A sine reference under PID, switched to FF+PID mid-run from the controller panel."""
+    win = bench_win
     from smabench.sessions import load_session
 
     win.mode_buttons["pid"].setChecked(True)

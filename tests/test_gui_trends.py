@@ -192,14 +192,13 @@ def test_window_follows_the_running_sessions_cycles(qtbot, tmp_path):
 
 @pytest.mark.slow
 def test_live_session_with_a_thermocouple_plots_measured_and_trends(qtbot, tmp_path):
-    from smabench.gui.state import State
-    from smabench.gui.window import MainWindow
+    from gui_support import FAST_MOCK_SPEED, open_window, run_until_completed
 
-    make_app()
-    win = MainWindow(tmp_path / "sessions")
+    from smabench.gui.state import State
+
+    # three cycles of device time on a faster mock (the same session in a quarter of the time)
+    win = open_window(tmp_path / "sessions", FAST_MOCK_SPEED)
     qtbot.addWidget(win)
-    win.resize(1280, 800)
-    win.show()
     win.mock_thermocouple.setChecked(True)
     win.protocol.setCurrentText("cycles")
     for key, text in (("protocol.cycles", "3"), ("protocol.current_a", "1.4"),
@@ -208,9 +207,11 @@ def test_live_session_with_a_thermocouple_plots_measured_and_trends(qtbot, tmp_p
         field.setFocus()
         qtbot.keyClick(field, Qt.Key.Key_A, Qt.KeyboardModifier.ControlModifier)
         qtbot.keyClicks(field, text)
-    qtbot.mouseClick(win.start_button, Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: win.last_end is not None, timeout=90000)
-    assert win.last_end["status"] == "completed", win.last_end
+    end = run_until_completed(
+        qtbot, win, lambda: qtbot.mouseClick(win.start_button, Qt.MouseButton.LeftButton),
+        timeout_ms=90000,
+    )  # fmt: skip
+    assert end is not None and end["status"] == "completed", (end, win.message.text())
     assert win.state == State.IDLE
     win.on_frame()
     assert win.time_plots.c_tmeas is not None  # the measured curve beside the estimate

@@ -14,7 +14,6 @@ real key and mouse events (pytest-qt, QTest), asserting each thing the issue ask
 
 from __future__ import annotations
 
-import gc
 import json
 import os
 import signal
@@ -27,13 +26,19 @@ import pytest
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 pytest.importorskip("pytestqt")
 
-from gui_support import LINK_TROUBLE, start_until_running  # noqa: E402
+from gui_support import (  # noqa: E402
+    FAST_MOCK_SPEED,
+    SharedBench,
+    dispose,
+    last_to_use,
+    open_window,
+    run_until_completed,
+    start_until_running,
+)
 from PySide6 import QtCore, QtGui, QtWidgets  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
 
-from smabench.gui.app import make_app  # noqa: E402
 from smabench.gui.state import State  # noqa: E402
-from smabench.gui.window import MainWindow  # noqa: E402
 from smabench.gui.worker import WORKER_NICE  # noqa: E402
 
 Qt = QtCore.Qt
@@ -41,6 +46,9 @@ ESTOP_LIMIT_S = 0.100
 # real time: the driver's setpoint lease (250 ms of device time) is not scaled with the mock's
 # speed, so a faster mock on a loaded machine expires it between two ticks
 MOCK_SPEED = 1.0
+WALK_MOCK_SPEED = 3.0
+"""The walkthrough's first run on a faster mock (as FAST_MOCK_SPEED, but slower: its pause must
+land in the second cycle, 7 s of device time, 2.3 s of wall time at 3×)."""
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 SIZES = ((1280, 800), (1400, 900), (1920, 1080))
 pytestmark = pytest.mark.slow
@@ -48,28 +56,44 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture
 def win(qtbot, tmp_path):
-    make_app()
-    w = MainWindow(tmp_path / "sessions", mock_speed=MOCK_SPEED)
+    """A fresh window, not connected; it keeps every message the operator saw and counts the
+    runtime's status reports it showed."""
+    w = open_window(tmp_path / "sessions", MOCK_SPEED)
     qtbot.addWidget(w)
-    w.resize(1280, 800)
-    w.show()
     qtbot.waitExposed(w)
     messages: list[str] = []
-    original = w.say
+    original, show_status = w.say, w._show_status
 
     def say(text: str, error: bool = False) -> None:  # every message the operator saw
         messages.append(text)
         original(text, error)
 
-    w.say = say
-    w.messages = messages
+    def counted(st: dict) -> None:
+        w.statuses_shown += 1
+        show_status(st)
+
+    w.say, w._show_status = say, counted
+    w.messages, w.statuses_shown = messages, 0
     yield w
-    w.close()
-    # the window's Qt objects destroyed here, on the GUI thread, not by a later collection in
-    # whatever thread allocates then
-    w.deleteLater()
-    QtCore.QCoreApplication.sendPostedEvents(None, QtCore.QEvent.Type.DeferredDelete)
-    gc.collect()
+    dispose(w)
+
+
+@pytest.fixture(scope="module")
+def shared_bench(qapp, tmp_path_factory):
+    bench = SharedBench(tmp_path_factory.mktemp("bench") / "sessions", MOCK_SPEED)
+    yield bench
+    bench.close()
+
+
+@pytest.fixture
+def bench_win(request, qtbot, shared_bench, tmp_path):
+    """The module's one window on the (real-time) mock bench, as a fresh one for this test
+    (:class:`gui_support.SharedBench`): a runtime and a mock started once for the E-STOP tests,
+    not once per state."""
+    qtbot.waitExposed(shared_bench.w)
+    yield shared_bench.for_test(qtbot, tmp_path / "sessions")
+    if last_to_use(request, "bench_win"):
+        shared_bench.close()
 
 
 def type_into(qtbot, field, text: str) -> None:
@@ -211,7 +235,8 @@ STATES = ["drop-down", "menu", "file dialog", "modal file dialog", "fit running"
 
 
 @pytest.mark.parametrize("where", STATES)
-def test_estop_key_stops_the_output_in_every_state(qtbot, win, tmp_path, where):
+def test_estop_key_stops_the_output_in_every_state(qtbot, bench_win, tmp_path, where):
+    win = bench_win
     # a fit may take long on a loaded machine (its worker has the lowest priority): meanwhile
     # the wire is held at a current the driver's energy budget allows for ever
     start_heating(qtbot, win, HOLD_CURRENT_A if where == "fit running" else 1.4)
@@ -261,7 +286,8 @@ def test_estop_key_stops_the_output_in_every_state(qtbot, win, tmp_path, where):
         assert win.last_fit["folder"] == str(win.fit_folder)
 
 
-def test_estop_button_by_mouse_beside_an_open_file_dialog(qtbot, win):
+def test_estop_button_by_mouse_beside_an_open_file_dialog(qtbot, bench_win):
+    win = bench_win
     start_heating(qtbot, win)
     win.open_folder_dialog()
     qtbot.waitExposed(win._dialog)
@@ -288,16 +314,10 @@ def _inside(win, w) -> bool:
 
 
 def test_run_controls_are_never_clipped_and_screenshots(qtbot, win, tmp_path):
+    win.mock_speed.set_value(FAST_MOCK_SPEED)  # the run's cycles in a quarter of the time
     cycles(qtbot, win, n=2, heat_s=3.0, cool_s=4.0)  # a finished run in the plots
-    for _ in range(2):  # once more when the mock's link dropped (see start_heating)
-        win.last_end = None
-        click(qtbot, win.start_button)
-        end = wait_end(qtbot, win)
-        if end["status"] == "completed" or not any(t in win.message.text()
-                                                   for t in LINK_TROUBLE):  # fmt: skip
-            break
-        print(f"\nstarting again after: {win.message.text()}")
-    assert end["status"] == "completed", end
+    end = run_until_completed(qtbot, win, lambda: click(qtbot, win.start_button))
+    assert end is not None and end["status"] == "completed", (end, win.message.text())
     for width, height in SIZES:
         win.resize(width, height)
         qtbot.waitUntil(lambda w=width, h=height: win.size() == QtCore.QSize(w, h), timeout=5000)
@@ -377,7 +397,11 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert f["position_min_mm"].isVisible() and f["position_max_mm"].isVisible()
     type_into(qtbot, f["current_limit_a"], "2")
     win.settings_tabs.setCurrentIndex(0)
-    # 5. connect: live readouts while idle
+    # 5. connect (to a faster mock, chosen in the Connection tab: the run below takes a third of
+    #    the time; the controller session reconnects at real time): live readouts while idle
+    win.settings_tabs.setCurrentIndex(3)
+    type_into(qtbot, win.mock_speed, f"{WALK_MOCK_SPEED:g}")
+    win.settings_tabs.setCurrentIndex(0)
     click(qtbot, win.connect_button)
     assert win.state == State.CONNECTING
     qtbot.waitUntil(lambda: win.state == State.IDLE, timeout=40000)
@@ -400,8 +424,10 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert win.state == State.PAUSED and win.pause_button.text() == "Resume"
     qtbot.waitUntil(lambda: "paused" in win.times.text(), timeout=5000)
     frozen = win.times.text().split("remaining")[1].split()[0]
-    t0 = time.monotonic()
-    qtbot.waitUntil(lambda: time.monotonic() - t0 > 1.5, timeout=5000)
+    # through three more status reports (1.5 s), each of which recomputes it while running
+    shown = win.statuses_shown
+    qtbot.waitUntil(lambda: win.statuses_shown >= shown + 3, timeout=10000)
+    assert "paused" in win.times.text()
     assert win.times.text().split("remaining")[1].split()[0] == frozen
     click(qtbot, win.pause_button)
     assert win.state == State.RUNNING
@@ -451,8 +477,25 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
                     timeout=30000)  # fmt: skip
     assert plain(win.message.text()) and win.start_button.isEnabled()
     assert not win.stop_button.isEnabled() and win.buffer.n == live_n  # plots not wiped
-    # 9. controller session: FF+PID gains apply to FF+PID, not to the PID; back to the table;
-    #    the active law shown; the open-loop current when switching live
+    # 9. the mock bench killed mid-run: words, session aborted, buttons back to Connect
+    cycles(qtbot, win, n=3, heat_s=60.0)
+    win.mode_buttons["open_loop"].setChecked(True)
+    win.last_end = None
+    click(qtbot, win.start_button)
+    qtbot.waitUntil(lambda: win.state == State.RUNNING and win.buffer.n > 20, timeout=30000)
+    os.kill(win.link.ports["mock_pid"], signal.SIGKILL)
+    end = wait_end(qtbot, win, 15000)
+    assert end["status"] == "aborted"
+    qtbot.waitUntil(lambda: win.state == State.ERROR, timeout=10000)
+    assert win.connect_button.text() == "Connect" and win.start_button.isEnabled()
+    assert "stopped answering" in win.message.text() and plain(win.message.text())
+    # 10. controller session, at real time (the open-loop current's timing below is device
+    #     time): Start reconnects first. FF+PID gains apply to FF+PID, not to the PID; back to
+    #     the table; the active law shown; the open-loop current when switching live
+    win.settings_tabs.setCurrentIndex(3)  # not connected: the connection settings are open
+    type_into(qtbot, win.mock_speed, f"{MOCK_SPEED:g}")
+    win.settings_tabs.setCurrentIndex(0)
+    win.protocol.setCurrentText("sine")
     type_into(qtbot, f["protocol.amplitude_mm"], "0.6")
     type_into(qtbot, f["protocol.period_s"], "10")
     type_into(qtbot, f["protocol.cycles"], "3")
@@ -461,8 +504,10 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert win.gain_boxes["pid"].isVisible() and not win.gain_boxes["ffpid"].isVisible()
     win.last_end = None
     click(qtbot, win.start_button)
+    assert win.state == State.CONNECTING  # Start reconnects first
     qtbot.waitUntil(lambda: win.state == State.RUNNING and win.status.get("mode") == "pid",
                     timeout=40000)  # fmt: skip
+    assert win.link_config["time_scale"] == MOCK_SPEED
     assert "PID" in win.active_mode.text()
     click(qtbot, win.mode_buttons["ffpid"])  # live switch
     qtbot.waitUntil(lambda: win.status.get("mode") == "ffpid", timeout=10000)
@@ -500,21 +545,11 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert f["controller.ffpid_gains.kp"].text() != "0.123"
     win.mode_buttons["ffpid"].setChecked(True)
     assert "ffpid_gains" not in (win.settings_dict().get("controller") or {})
-    # 10. the mock bench killed mid-run: words, session aborted, buttons back to Connect
+    # 11. the runtime process killed mid-run: words, the session closed as aborted, Connect
     cycles(qtbot, win, n=3, heat_s=60.0)
     win.mode_buttons["open_loop"].setChecked(True)
     win.last_end = None
     click(qtbot, win.start_button)
-    qtbot.waitUntil(lambda: win.state == State.RUNNING and win.buffer.n > 20, timeout=30000)
-    os.kill(win.link.ports["mock_pid"], signal.SIGKILL)
-    end = wait_end(qtbot, win, 15000)
-    assert end["status"] == "aborted"
-    qtbot.waitUntil(lambda: win.state == State.ERROR, timeout=10000)
-    assert win.connect_button.text() == "Connect" and win.start_button.isEnabled()
-    assert "stopped answering" in win.message.text() and plain(win.message.text())
-    # 11. the runtime process killed mid-run: words, the session closed as aborted, Connect
-    win.last_end = None
-    click(qtbot, win.start_button)  # Start reconnects first
     qtbot.waitUntil(lambda: win.state == State.RUNNING and win.buffer.n > 20, timeout=40000)
     folder = win.session_folder
     os.kill(win.link.proc.pid, signal.SIGKILL)

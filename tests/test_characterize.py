@@ -226,17 +226,24 @@ def test_phase_diagram_slope_known_by_construction():
     assert phase_diagram(sessions[:1]) is None
 
 
-@pytest.mark.slow
-def test_local_processes_and_dask_cluster_give_identical_results(tmp_path):
+@pytest.fixture(scope="module")
+def dask_scheduler():
+    """The address of a Dask LocalCluster on loopback (two worker processes), started once for
+    this file's tests (a start and a stop take 2-7 s on two cores)."""
     distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        yield cluster.scheduler_address
+
+
+@pytest.mark.slow
+def test_local_processes_and_dask_cluster_give_identical_results(tmp_path, dask_scheduler):
     folders = [str(_bench_session(tmp_path / f"s{k}", Branches(As=70 + 3 * k, Af=85 + 3 * k,
                                                                   Ms=65 + 3 * k, Mf=50 + 3 * k,
                                                                   round_k=2.0), 5, 1.0 + k))
                for k in range(3)]  # fmt: skip
     local = characterize_many(folders, workers=2)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  host="127.0.0.1", dashboard_address=None) as cluster:
-        remote = characterize_many(folders, scheduler=cluster.scheduler_address)
+    remote = characterize_many(folders, scheduler=dask_scheduler)
     assert json.dumps(local, sort_keys=True) == json.dumps(remote, sort_keys=True)
     assert local["phase_diagram"]["As"]["slope_MPa_per_K"] > 0
 
@@ -260,10 +267,9 @@ def test_unreachable_scheduler_is_one_line(tmp_path, cli):
 
 
 @pytest.mark.slow
-def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, cli):
+def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, cli, dask_scheduler):
     """smabench analyze --each: one task per session; the same documents from local processes
     and from a Dask LocalCluster on loopback."""
-    distributed = pytest.importorskip("distributed")
     from smabench.analysis.cli import analyse_one
     from smabench.tasks import run_tasks
 
@@ -275,9 +281,7 @@ def test_analyze_each_session_as_a_task_locally_and_on_dask(tmp_path, cli):
         folders.append(str(f))
     tasks = [(f, None, None, ["convection_nonlinear"]) for f in folders]
     local = run_tasks(analyse_one, tasks, workers=2)
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  host="127.0.0.1", dashboard_address=None) as cluster:
-        remote = run_tasks(analyse_one, tasks, scheduler=cluster.scheduler_address)
+    remote = run_tasks(analyse_one, tasks, scheduler=dask_scheduler)
     assert [d["session"] for d in local] == folders
     assert json.dumps(local, sort_keys=True) == json.dumps(remote, sort_keys=True)
     proc = cli("analyze", folders[0], "--scheduler", "tcp://127.0.0.1:9", "--json",

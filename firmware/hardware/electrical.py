@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +22,7 @@ class Electrical:
         return self.raw[section]
 
     # --------------------------------------------------------------- sink and setpoint
-    @property
+    @cached_property
     def shunt_ohm(self) -> float:
         return float(self["sink"]["shunt_ohm"])
 
@@ -29,12 +30,12 @@ class Electrical:
     def current_max_a(self) -> float:
         return float(self["sink"]["current_max_a"])
 
-    @property
+    @cached_property
     def setpoint_divider(self) -> float:
         sp = self["setpoint"]
         return sp["divider_bottom_ohm"] / (sp["divider_top_ohm"] + sp["divider_bottom_ohm"])
 
-    @property
+    @cached_property
     def setpoint_a_per_count(self) -> float:
         """Sink current per PWM count (duty 0 … ``pwm_top``), A."""
         sp = self["setpoint"]
@@ -44,7 +45,7 @@ class Electrical:
     def setpoint_full_scale_a(self) -> float:
         return self.setpoint_a_per_count * self["setpoint"]["pwm_top"]
 
-    @property
+    @cached_property
     def setpoint_filter_tau_s(self) -> float:
         """Time constant of each of the two RC poles of the PWM filter, s."""
         sp = self["setpoint"]

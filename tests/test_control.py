@@ -5,6 +5,7 @@ runtime's mode interface, and a smoke run of ``smabench bench control`` on the m
 from __future__ import annotations
 
 import math
+import os
 import signal
 import threading
 
@@ -412,10 +413,13 @@ def test_bench_control_smoke_on_the_mock(tmp_path):
 @pytest.fixture
 def run_in_process(cli):
     """``smabench run`` through ``smabench.cli.main`` in this process (no interpreter start; its
-    mock still runs in its own process); the SIGTERM handler it installs is put back after."""
-    before = signal.getsignal(signal.SIGTERM)
+    mock still runs in its own process). What it sets for its own process is put back after:
+    the SIGTERM handler, and the scheduling of this thread, which ran the loop real-time."""
+    handler = signal.getsignal(signal.SIGTERM)
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
     yield cli
-    signal.signal(signal.SIGTERM, before)
+    signal.signal(signal.SIGTERM, handler)
+    os.sched_setscheduler(0, policy, param)
 
 
 @pytest.mark.slow

@@ -151,6 +151,20 @@ def _restore_entries(w: MainWindow, entries: dict[str, object]) -> None:
     assert _entries(w) == entries, "the shared window's entries were not restored"
 
 
+def ensure_connected(qtbot, w) -> None:
+    """Connected and idle: Connect pressed when the window is not (again only after link
+    trouble, at most twice, saying why; see :func:`start_until_running`)."""
+    for _ in range(3):
+        if w.state == State.IDLE:
+            return
+        qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
+        qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR), timeout=60000)
+        if w.state == State.IDLE or not any(t in w.message.text() for t in LINK_TROUBLE):
+            break
+        print(f"\nconnecting again after: {w.message.text()}")
+    assert w.state == State.IDLE, (w.state, w.message.text(), w.sm.history[-4:])
+
+
 def start_until_running(qtbot, w, press_start: Callable[[], None]) -> None:
     """Press Start (``press_start``) until the session runs with the output on (the driver
     measures > 0.5 A): at most three presses, again only after link trouble, saying why.

@@ -22,6 +22,7 @@ from gui_support import (  # noqa: E402
     FAST_MOCK_SPEED,
     SharedBench,
     dispose,
+    ensure_connected,
     last_to_use,
     open_window,
     run_until_completed,
@@ -277,10 +278,9 @@ def test_messages_are_plain_words(raw, want):
 
 
 @pytest.mark.slow
-def test_device_lost_while_idle_is_noticed(qtbot, win):
-    qtbot.mouseClick(win.connect_button, Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: win.state in (State.IDLE, State.ERROR), timeout=60000)
-    assert win.state == State.IDLE, win.message.text()
+def test_device_lost_while_idle_is_noticed(qtbot, bench_win):
+    win = bench_win
+    ensure_connected(qtbot, win)  # (Connect pressed when the shared window is not connected)
     qtbot.waitUntil(lambda: win.status.get("readout", {}).get("position_mm") is not None,
                     timeout=10000)  # fmt: skip
     os.kill(win.link.ports["mock_pid"], signal.SIGKILL)

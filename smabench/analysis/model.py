@@ -184,9 +184,9 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         tau_c = p.get("tau_cool_s", 0.0)
         tau_h = p["tau_heat_s"] if "tau_heat_s" in p else p.get("heat_lag_ratio", 0.0) * tau_c
     beta, lat, conv = p.get("beta", 0.0), p.get("lat_k", 0.0), p.get("conv_k", 0.0)
-    # no coupled effect: the temperature does not depend on ξ, and three short passes give the
-    # same numbers as the one coupled pass in about half the time
-    kernel = _wire_kernel if (beta or lat or conv) and not thermo else _wire_kernel_uncoupled
+    # the temperature does not depend on ξ (no phase resistance, no latent heat): three short
+    # passes give the same numbers as the one coupled pass in about half the time
+    kernel = _wire_kernel if (beta or lat) and not thermo else _wire_kernel_uncoupled
     return kernel(
         thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
         *_foh(g.dt, tau_h), *_foh(g.dt, tau_c),
@@ -305,11 +305,11 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
 def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                            bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc,
                            memory):  # fmt: skip
-    """:func:`_wire_kernel` without the coupled terms (``beta``, ``lat``, ``conv`` unused, taken
-    as 0): the same discrete equations and the same numbers, in three passes: the temperature
-    and its directions; the major branch at every step (the exp/cos of :func:`_branch` in a
-    tight loop of their own, not in the long recurrence where every call spills its many live
-    values); then ξ's recurrence from those."""
+    """:func:`_wire_kernel` where the temperature does not depend on ξ (``beta``, ``lat`` unused,
+    taken as 0; ``conv`` acts on T alone): the same discrete equations and the same numbers, in
+    three passes: the temperature and its directions; the major branch at every step (the
+    exp/cos of :func:`_branch` in a tight loop of their own, not in the long recurrence where
+    every call spills its many live values); then ξ's recurrence from those."""
     n = len(temp_in) if thermo else len(amb)
     temp_out = np.empty(n)
     xi_out = np.empty(n)
@@ -322,6 +322,11 @@ def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
     for k in range(n - 1):
         if thermo:
             new = temp_in[k + 1]
+        elif conv != 0.0:  # the conductance follows T, not ξ: still uncoupled
+            ta = amb[k]
+            gf = max(1.0 + conv * (temp - ta), 0.05)
+            t_inf = ta + heat_k[k] / gf
+            new = t_inf + (temp - t_inf) * math.exp(-rate * gf)
         else:
             t_inf = amb[k] + heat_k[k]
             new = t_inf + (temp - t_inf) * a_const

@@ -201,7 +201,7 @@ def test_resume_refuses_a_changed_plan_and_run_refuses_an_existing_state(tmp_pat
 
 
 @pytest.mark.slow
-def test_example_plan_on_the_mock_killed_and_resumed(tmp_path, capsys):
+def test_example_plan_on_the_mock_killed_and_resumed(tmp_path):
     """End to end on the mock bench: the example plan, SIGKILL during step 2 (a power loss),
     `plan resume` finishes it; every step's session is complete and linked."""
     text = EXAMPLE.read_text().replace('out = "sessions/plans-out"', f'out = "{tmp_path}"')
@@ -239,18 +239,16 @@ def test_example_plan_on_the_mock_killed_and_resumed(tmp_path, capsys):
     proc.wait()
     state = json.loads(state_file.read_text())
     assert [s["status"] for s in state["steps"]] == ["done", "running", "pending"]
-    from smabench.cli import main
-
-    capsys.readouterr()  # the resume in this process (no interpreter start; no prompt due)
-    code = main(["plan", "resume", str(tmp_path / "example"), "--mock", "--prompt", "terminal"])
-    res = capsys.readouterr()
-    assert code == 0, res.out + res.err
-    assert "resuming at cycles-2kg" in res.out
+    res = subprocess.run([sys.executable, "-m", "smabench.cli", "plan", "resume",
+                          str(tmp_path / "example"), "--mock"], input="", capture_output=True,
+                         text=True, timeout=300)  # fmt: skip
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "resuming at cycles-2kg" in res.stdout
     state = json.loads(state_file.read_text())
     assert [s["status"] for s in state["steps"]] == ["done", "done", "done"]
     # no step aborted by the (mock) devices and quietly run again: the plan's retries would hide
     # a bench that cannot hold its link on a busy machine
-    assert [s.get("retried", 0) for s in state["steps"]] == [0, 0, 0], res.out + res.err
+    assert [s.get("retried", 0) for s in state["steps"]] == [0, 0, 0], res.stdout + res.stderr
     for s in state["steps"]:
         sess = load_session(s["session"])
         assert sess.meta["status"] == "completed" and sess.meta["plan"]["step"] == s["name"]

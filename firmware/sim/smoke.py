@@ -144,11 +144,22 @@ class Link:
         os.close(self.fd)
 
 
+SIM_RT_PRIORITY = 10  # the mock bench's (drivers/mock/bench.py DEVICE_RT_PRIORITY)
+
+
+def realtime_child() -> None:
+    """preexec_fn: the harness stands in for a microcontroller, which host load does not slow:
+    SCHED_FIFO where allowed (root or CAP_SYS_NICE), as the mock bench runs it; else unchanged."""
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(SIM_RT_PRIORITY))
+
+
 class Sim:
     def __init__(self, binary: str, elf: str, *extra: str) -> None:
         self.p = subprocess.Popen([binary, *extra, elf], stdin=subprocess.PIPE,
                                   stdout=subprocess.PIPE,
-                                  stderr=subprocess.PIPE, text=True, bufsize=1)
+                                  stderr=subprocess.PIPE, text=True, bufsize=1,
+                                  preexec_fn=realtime_child)
         line = self.p.stdout.readline()
         if not line.startswith("PTY "):
             self.p.kill()

@@ -2,7 +2,7 @@
  * time, with UART0 bridged to a pseudo-terminal and a simple electrical model of the SMA wire
  * feeding the ADC. See firmware/sim/README.md.
  *
- *   smabench-sim [--report] [--r-ohm R] [--ambient C] [-v] firmware.elf
+ *   smabench-sim [--report] [--r-ohm R] [--ambient C] [--trace-io FILE] [-v] firmware.elf
  *
  * stdout: first line "PTY <slave path>", then STATE lines (command Q, or every 100 ms with
  * --report). stdin: control commands, one per line (R <ohms>, A <celsius>, OPEN, CLOSE, Q).
@@ -82,11 +82,23 @@ static uint8_t txq[65536];
 static size_t txq_len;            /* bytes from the AVR waiting to be written to the pty */
 static unsigned long tx_dropped, rx_bytes, tx_bytes;
 static int pty_master = -1, pty_slave = -1;
+static FILE *trace_io; /* --trace-io: pty bytes, stalls and slips with wall and AVR times */
 
 /* time */
 static uint64_t total_cycles, last_cycle;
 static unsigned resets, resets_seen, resets_reported;
 static uint8_t reset_mcusr;
+
+static uint64_t now_ns(void);
+
+/* One --trace-io line: event, CLOCK_MONOTONIC µs (the host's time.monotonic() × 1e6), AVR µs,
+ * value (bytes, or the stall / slip in µs). */
+static void trace_event(const char *what, double value)
+{
+    if (trace_io)
+        fprintf(trace_io, "%s %.0f %.0f %.0f\n", what, now_ns() / 1e3,
+                total_cycles / (F_CPU / 1e6), value);
+}
 
 /* ------------------------------------------------------------------ logging */
 static void log_to_stderr(avr_t *a, const int level, const char *fmt, va_list ap)
@@ -254,8 +266,10 @@ static void pty_read(void)
         rxq[rxq_head] = buf[k];
         rxq_head = (rxq_head + 1) % sizeof rxq;
     }
-    if (n > 0)
+    if (n > 0) {
+        trace_event("rx", (double)n);
         rx_pump_kick();
+    }
 }
 
 static void pty_flush(void)
@@ -264,6 +278,7 @@ static void pty_flush(void)
         return;
     ssize_t n = write(pty_master, txq, txq_len);
     if (n > 0) {
+        trace_event("tx", (double)n);
         memmove(txq, txq + n, txq_len - (size_t)n);
         txq_len -= (size_t)n;
     } else if (n < 0 && errno != EAGAIN && errno != EINTR) {
@@ -391,7 +406,8 @@ static uint64_t now_ns(void)
 
 static void usage(void)
 {
-    fprintf(stderr, "usage: smabench-sim [--report] [--r-ohm R] [--ambient C] [-v] firmware.elf\n"
+    fprintf(stderr, "usage: smabench-sim [--report] [--r-ohm R] [--ambient C] [--trace-io FILE] [-v]"
+                    " firmware.elf\n"
                     "       smabench-sim --bootloader BOOT.hex [options] (app.elf | app.hex | --blank)\n");
     exit(2);
 }
@@ -409,6 +425,11 @@ int main(int argc, char **argv)
             r_ohm = atof(argv[++i]);
         else if (!strcmp(argv[i], "--ambient") && i + 1 < argc)
             ambient_c = atof(argv[++i]);
+        else if (!strcmp(argv[i], "--trace-io") && i + 1 < argc) {
+            trace_io = fopen(argv[++i], "w");
+            if (!trace_io)
+                die("--trace-io %s: %s", argv[i], strerror(errno));
+        }
         else if ((k = boot_option(argc, argv, i)) > 0)
             i += k - 1;
         else if (argv[i][0] == '-')
@@ -508,6 +529,7 @@ int main(int argc, char **argv)
     uint64_t next_report = report_cycles, next_refresh = 0;
     uint64_t wall0 = now_ns(), sim0 = 0;
     unsigned long slips = 0;
+    uint64_t last_wake_ns = 0;
     int stdin_open = 1, exit_code = 0;
     last_cycle = avr->cycle;
 
@@ -559,7 +581,13 @@ int main(int argc, char **argv)
         uint64_t sim_ns = (total_cycles - sim0) * 1000000000ull / F_CPU;
         uint64_t wall_ns = now_ns() - wall0;
         int64_t ahead = (int64_t)sim_ns - (int64_t)wall_ns;
+        if (trace_io) { /* a slice that took more than 10 ms of wall time: the harness stalled */
+            uint64_t w = now_ns();
+            if (last_wake_ns && w - last_wake_ns > 10000000ull)
+                trace_event("stall", (w - last_wake_ns) / 1e3);
+        }
         if (ahead < -50000000) { /* more than 50 ms behind: slip instead of racing */
+            trace_event("slip", -ahead / 1e3);
             wall0 = now_ns();
             sim0 = total_cycles;
             ahead = 0;
@@ -595,12 +623,15 @@ int main(int argc, char **argv)
             if (ahead <= 0)
                 break; /* caught up: run the next slice (input is injected at the AVR's time) */
         }
+        last_wake_ns = now_ns();
     }
 out:
     pty_flush();
     if (verbose || exit_code)
         fprintf(stderr, "smabench-sim: exit after %.3f ms AVR time; rx %lu B, tx %lu B, tx dropped %lu, slips %lu\n",
                 total_cycles / (F_CPU / 1000.0), rx_bytes, tx_bytes, tx_dropped, slips);
+    if (trace_io)
+        fclose(trace_io);
     avr_terminate(avr);
     return exit_code;
 }

@@ -32,6 +32,7 @@ import pytest
 
 from smabench.drivers import protocol as p
 from smabench.drivers.current_source import CurrentSource, DeviceFault, VersionMismatch
+from smabench.drivers.mock.bench import realtime_child
 
 REPO = Path(__file__).resolve().parent.parent
 SIM = Path(os.environ.get("SMABENCH_SIM", REPO / "firmware/build/sim/smabench-sim"))
@@ -60,7 +61,9 @@ S = p.Status
 
 
 class Harness:
-    """The simavr harness process: PTY path, stdin control, STATE queries."""
+    """The simavr harness process: PTY path, stdin control, STATE queries. It stands in for a
+    microcontroller, which host load does not slow: SCHED_FIFO where allowed, as the mock
+    bench runs it (:func:`~smabench.drivers.mock.bench.realtime_child`)."""
 
     def __init__(self) -> None:
         self.proc = subprocess.Popen(
@@ -70,6 +73,7 @@ class Harness:
             stderr=subprocess.PIPE,
             text=True,
             bufsize=1,
+            preexec_fn=realtime_child,
         )
         self.lines: queue.Queue[str] = queue.Queue()
         self._reader = threading.Thread(target=self._read, daemon=True)

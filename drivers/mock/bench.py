@@ -68,8 +68,9 @@ def die_with_parent() -> None:
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
-def _realtime_child() -> None:
-    """preexec_fn: :func:`die_with_parent`, and SCHED_FIFO where allowed (else unchanged)."""
+def realtime_child() -> None:
+    """preexec_fn for a stand-in device process (the simavr harness): :func:`die_with_parent`,
+    and SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed (else unchanged)."""
     die_with_parent()
     with contextlib.suppress(OSError, AttributeError):
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(DEVICE_RT_PRIORITY))
@@ -132,7 +133,7 @@ class EmulatedDriver:
             stderr=subprocess.DEVNULL,
             text=True,
             bufsize=1,
-            preexec_fn=_realtime_child if realtime else die_with_parent,
+            preexec_fn=realtime_child if realtime else die_with_parent,
         )
         first = self.proc.stdout.readline().strip()
         if not first.startswith("PTY "):

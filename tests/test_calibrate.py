@@ -28,7 +28,7 @@ from smabench import calibrate as cal
 from smabench.cli import main
 from smabench.drivers import protocol as p
 from smabench.drivers.current_source import CommandRejected, CurrentSource
-from smabench.drivers.mock.bench import MockBench
+from smabench.drivers.mock.bench import MockBench, realtime_child
 from smabench.drivers.mock.firmware import Electrical
 from smabench.drivers.mock.serial_device import SerialDevice
 from smabench.physics.thermal import step_exact
@@ -469,12 +469,15 @@ def test_session_block_written_at_only_when_the_device_holds_what_was_written(st
 # ----------------------------------------------------------------------------- emulated firmware
 class Harness:
     """The simavr harness (real firmware), wire resistance fixed; ``current_a()`` is the wire
-    current on the harness's side (its STATE line)."""
+    current on the harness's side (its STATE line). Real-time where allowed, as the mock bench
+    runs it: it stands in for a microcontroller, which host load does not slow (beside CPU
+    burners, at normal scheduling, the firmware's 0.25 s host timeout once turned the output
+    off in the middle of `calibrate wire`)."""
 
     def __init__(self, r_ohm: float = 0.44) -> None:
         self.proc = subprocess.Popen(
             [str(SIM), str(ELF)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL, text=True, bufsize=1,
+            stderr=subprocess.DEVNULL, text=True, bufsize=1, preexec_fn=realtime_child,
         )  # fmt: skip
         self.lines: queue.Queue[str] = queue.Queue()
         first = self.proc.stdout.readline().strip()

@@ -25,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from smabench.drivers.current_source import CurrentSource, LinkTimeout
-from smabench.drivers.mock.bench import BOOTLOADER_HEX, SIM_BIN, SIM_ELF
+from smabench.drivers.mock.bench import BOOTLOADER_HEX, SIM_BIN, SIM_ELF, realtime_child
 
 REPO = Path(__file__).resolve().parent.parent
 APP_HEX = SIM_ELF.with_suffix(".hex")  # `make -C firmware elf` writes both
@@ -47,7 +47,8 @@ RESET = re.compile(r"AVR reset at t=([\d.]+) ms \(MCUSR=0x([0-9a-f]{2})")
 
 
 class BootHarness:
-    """smabench-sim with a bootloader; ``resets()`` lists (AVR time ms, MCUSR) from its stderr."""
+    """smabench-sim with a bootloader; ``resets()`` lists (AVR time ms, MCUSR) from its stderr.
+    Real-time where allowed, as the mock bench runs it (a Nano is not slowed by host load)."""
 
     def __init__(self, bootloader: Path, app: Path | None) -> None:
         self.proc = subprocess.Popen(
@@ -57,6 +58,7 @@ class BootHarness:
             stderr=subprocess.PIPE,
             text=True,
             bufsize=1,
+            preexec_fn=realtime_child,
         )
         first = self.proc.stdout.readline().strip()
         assert first.startswith("PTY "), first

@@ -196,7 +196,7 @@ def test_live_session_with_a_thermocouple_plots_measured_and_trends(qtbot, tmp_p
 
     from smabench.gui.state import State
 
-    # three cycles of device time on a faster mock (the same session in a quarter of the time)
+    # three cycles of device time on a faster mock (the same session in a fifth of the time)
     win = open_window(tmp_path / "sessions", FAST_MOCK_SPEED)
     qtbot.addWidget(win)
     win.mock_thermocouple.setChecked(True)

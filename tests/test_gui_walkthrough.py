@@ -315,7 +315,7 @@ def _inside(win, w) -> bool:
 
 
 def test_run_controls_are_never_clipped_and_screenshots(qtbot, win, tmp_path):
-    win.mock_speed.set_value(FAST_MOCK_SPEED)  # the run's cycles in a quarter of the time
+    win.mock_speed.set_value(FAST_MOCK_SPEED)  # the run's cycles in a fifth of the time
     cycles(qtbot, win, n=2, heat_s=3.0, cool_s=4.0)  # a finished run in the plots
     end = run_until_completed(qtbot, win, lambda: click(qtbot, win.start_button))
     assert end is not None and end["status"] == "completed", (end, win.message.text())

@@ -28,6 +28,7 @@ pytest.importorskip("pytestqt")
 
 from gui_support import (  # noqa: E402
     FAST_MOCK_SPEED,
+    LINK_TROUBLE,
     SharedBench,
     dispose,
     last_to_use,
@@ -412,15 +413,19 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert "position –" not in win.readout.text()
     # 6. a run: fields that cannot change mid-run are disabled; remaining time frozen in pause
     cycles(qtbot, win, n=2, heat_s=3.0, cool_s=4.0)
-    win.last_end = None
-    click(qtbot, win.start_button)
-    qtbot.waitUntil(lambda: win.state == State.RUNNING, timeout=20000)
-    assert not f["load_kg"].isEnabled() and not f["protocol.cycles"].isEnabled()
-    assert not win.protocol.isEnabled() and not f["current_limit_a"].isEnabled()
-    assert not win.start_button.isEnabled() and win.stop_button.isEnabled()
-    qtbot.waitUntil(lambda: "cycle 1 of 2" in win.times.text(), timeout=30000)
-    qtbot.waitUntil(lambda: "cycle 2 of 2" in win.times.text() and win.progress.value() > 0
-                    and "remaining –" not in win.times.text(), timeout=30000)  # fmt: skip
+    for attempt in range(3):  # again when the link dropped before the pause (see start_heating)
+        start_until_running(qtbot, win, lambda: click(qtbot, win.start_button))
+        assert not f["load_kg"].isEnabled() and not f["protocol.cycles"].isEnabled()
+        assert not win.protocol.isEnabled() and not f["current_limit_a"].isEnabled()
+        assert not win.start_button.isEnabled() and win.stop_button.isEnabled()
+        if running_until(qtbot, win, lambda: "cycle 1 of 2" in win.times.text()) and \
+                running_until(qtbot, win, lambda: "cycle 2 of 2" in win.times.text()
+                              and win.progress.value() > 0
+                              and "remaining –" not in win.times.text()):  # fmt: skip
+            break
+        assert attempt < 2 and any(t in win.message.text() for t in LINK_TROUBLE), (
+            win.state, win.message.text(), win.last_end)  # fmt: skip
+        print(f"\nstarting again after: {win.message.text()}")
     click(qtbot, win.pause_button)
     assert win.state == State.PAUSED and win.pause_button.text() == "Resume"
     qtbot.waitUntil(lambda: "paused" in win.times.text(), timeout=5000)
@@ -562,6 +567,12 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     # 12. nothing the operator read was raw JSON, a command-line hint or a library sentence
     bad = [m for m in win.messages if not plain(m)]
     assert not bad, bad
+
+
+def running_until(qtbot, w, condition, timeout_ms: int = 30000) -> bool:
+    """Wait until ``condition()`` or the session stops running; returns ``condition()``."""
+    qtbot.waitUntil(lambda: condition() or w.state != State.RUNNING, timeout=timeout_ms)
+    return bool(condition())
 
 
 def shown_cycles(cycle_column: np.ndarray) -> int:

@@ -322,3 +322,28 @@ def test_debians_optiboot_overflows_the_chip_and_ours_fits():
     assert proc.returncode == 2 and "no chip can hold this image" in proc.stderr
     lo, hi = hex_extent(BOOTLOADER_HEX)
     assert lo == 0x7E00 and hi == 0x7FFF
+
+
+def test_an_avrdude_that_hangs_is_run_once_more(capsys, monkeypatch, tmp_path):
+    """avrdude hung once after "AVR device initialized" on the emulated Nano under load: after
+    AVRDUDE_TIMEOUT_S it is run again (the whole image written again), at the same baud rate."""
+    from smabench import firmware_cli
+
+    fake = tmp_path / "bin"  # hangs on its first call, succeeds on the second
+    fake.mkdir()
+    wc, sleep = shutil.which("wc"), shutil.which("sleep")  # PATH holds only the fake below
+    script = "#!/bin/sh\necho \"$@\" >> \"$0.log\"\n"
+    script += f"if [ $({wc} -l < \"$0.log\") -eq 1 ]; then exec {sleep} 30; fi\n"
+    script += "echo 'avrdude: 26 bytes of flash verified' >&2\nexit 0\n"
+    (fake / "avrdude").write_text(script)
+    (fake / "avrdude").chmod(0o755)
+    monkeypatch.setenv("PATH", str(fake))
+    monkeypatch.setattr(firmware_cli, "AVRDUDE_TIMEOUT_S", 0.5)
+    port = tmp_path / "ttyFAKE"  # not a serial port: no probe, avrdude at every baud rate
+    port.touch()
+    hex_path = tmp_path / "app.hex"
+    hex_path.write_text(":020000000C945E\n:00000001FF\n")
+    assert firmware_cli.flash(str(port), hex_path) == 115200
+    calls = (fake / "avrdude.log").read_text().splitlines()
+    assert len(calls) == 2 and all(" -b 115200 " in c for c in calls)
+    assert "no result in 0.5 s; running it again" in capsys.readouterr().out

@@ -16,7 +16,6 @@ import logging
 import math
 
 import numpy as np
-from scipy.signal import lfilter
 
 from smabench.physics.wire import Wire
 
@@ -68,6 +67,8 @@ def linear_recurrence(a: ArrayLike, u: np.ndarray, x0: float) -> np.ndarray:
     if len(u) == 0:
         return out
     if np.ndim(a) == 0 or np.all(a == a[0]):
+        from scipy.signal import lfilter  # here: importing scipy.signal costs 0.55 s per process
+
         a0 = float(a if np.ndim(a) == 0 else a[0])
         out[1:] = lfilter([1.0], [1.0, -a0], u, zi=[a0 * x0])[0]
         return out

@@ -434,3 +434,33 @@ def test_bench_priority_lowers_the_nice_value_and_leaves_the_sessions_autogroup(
 
     monkeypatch.setattr(priority.os, "setpriority", refuse)
     assert priority.raise_priority() is False
+
+
+def test_realtime_thread_puts_the_scheduling_back(monkeypatch):
+    """``bench control`` runs each live session's loop real-time and then computes the next
+    case at the scheduling it had: raised inside the block, put back after (also on error);
+    where the system refuses, nothing changes and the block still runs."""
+    from smabench.bench import priority
+
+    state = {"policy": priority.os.SCHED_OTHER, "prio": 0}
+    monkeypatch.setattr(priority.os, "sched_getscheduler", lambda pid: state["policy"])
+    monkeypatch.setattr(priority.os, "sched_getparam",
+                        lambda pid: priority.os.sched_param(state["prio"]))  # fmt: skip
+
+    def setsched(pid, policy, param):
+        state["policy"], state["prio"] = policy, param.sched_priority
+
+    monkeypatch.setattr(priority.os, "sched_setscheduler", setsched)
+    with pytest.raises(RuntimeError), priority.realtime_thread() as raised:
+        assert raised is True
+        assert state == {"policy": priority.os.SCHED_FIFO, "prio": priority.LOOP_RT_PRIORITY}
+        raise RuntimeError("session failed")
+    assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}
+
+    def refuse(*a):
+        raise PermissionError("no CAP_SYS_NICE")
+
+    monkeypatch.setattr(priority.os, "sched_setscheduler", refuse)
+    with priority.realtime_thread() as raised:
+        assert raised is False
+    assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}

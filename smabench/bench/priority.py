@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +61,21 @@ def realtime_loop_thread(priority: int = LOOP_RT_PRIORITY) -> bool:
     except (OSError, AttributeError) as exc:
         log.info("control loop stays at normal scheduling (%s)", exc)
         return False
+
+
+@contextmanager
+def realtime_thread(priority: int = LOOP_RT_PRIORITY) -> Iterator[bool]:
+    """:func:`realtime_loop_thread` for the calling thread while the block runs (yields whether
+    it was raised), then its scheduling as it was: for a process that runs a session and then
+    goes on computing (``bench control`` identifies the next case's model between sessions,
+    which must not preempt its own mock)."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    raised = realtime_loop_thread(priority)
+    try:
+        yield raised
+    finally:
+        if raised:
+            os.sched_setscheduler(0, policy, param)
 
 
 def realtime_process(priority: int = LOOP_RT_PRIORITY // 2) -> int:

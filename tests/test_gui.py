@@ -140,7 +140,11 @@ def test_short_protocol_fills_the_plots_and_is_listed(qtbot, fast_win, tmp_path)
     assert x is not None and len(x) > 50 and np.nanmax(y) - np.nanmin(y) > 2.0
     assert "driver ok" in win.health.text()
     assert end["folder"] in win.message.text()  # the end message names the saved folder
-    qtbot.waitUntil(lambda: win.session_list.topLevelItemCount() == 1, timeout=5000)
+    # every recorded session listed (one, or more when a link loss started it again), the
+    # newest, this one, on top
+    recorded = [d for d in win.sessions_dir.iterdir() if (d / "session.json").is_file()]
+    assert Path(end["folder"]) in recorded
+    qtbot.waitUntil(lambda: win.session_list.topLevelItemCount() == len(recorded), timeout=5000)
     item = win.session_list.topLevelItem(0)
     assert item.text(2) == "cycles" and item.text(3) == "completed" and item.text(1) == "2 kg"
 

@@ -470,7 +470,9 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     win.session_list.setCurrentItem(win.session_list.topLevelItem(0))
     win.fit_model.setCurrentText("sigmoid")
     click(qtbot, win.fit_button)
-    qtbot.waitUntil(lambda: getattr(win, "last_fit", None) is not None, timeout=60000)
+    # the fit's process (nice 19, started with the window 10 s ago) may still be importing
+    # beside other work: the same generous deadline as the fit-running E-STOP test's
+    qtbot.waitUntil(lambda: getattr(win, "last_fit", None) is not None, timeout=180000)
     assert win.last_fit["folder"] == end["folder"]  # the selected session, not what was shown
     assert win.replay.folder == Path(end["folder"])
     assert Path(end["folder"]).name in win.replay.fit_text.toPlainText()

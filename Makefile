@@ -41,8 +41,10 @@ $(STAMP): pyproject.toml
 lint: venv
 	$(VENV)/bin/ruff check smabench drivers tests firmware/hardware sessions/samples
 
+# two workers, a test file each at a time (module fixtures stay in one process): most files wait
+# on device time at low CPU, so the analysis files' fits use the second core meanwhile
 test-python: venv
-	$(VENV)/bin/pytest -q --durations=20
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=20
 
 # the emulator tests in test-python need the .elf, the simavr harness and the watchdog image
 firmware-build: sysdeps

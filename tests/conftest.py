@@ -1,4 +1,5 @@
-"""Shared fixtures: paths to the measured Flexinol loops and a CLI runner."""
+"""Shared fixtures: paths to the measured Flexinol loops, a CLI runner and the GUI tests' one
+window per module on the mock bench."""
 
 from __future__ import annotations
 
@@ -83,3 +84,25 @@ def cli_in_process(capsys):
 def cli(cli_in_process):
     """``smabench`` in this process (the subprocess fixture costs seconds on a busy machine)."""
     return cli_in_process
+
+
+@pytest.fixture(scope="module")
+def shared_bench(qapp, tmp_path_factory, request):
+    """The GUI test module's one window on the mock bench at the module's ``MOCK_SPEED``
+    (:class:`gui_support.SharedBench`): a runtime and a mock started once, not per test."""
+    from gui_support import SharedBench
+
+    bench = SharedBench(tmp_path_factory.mktemp("bench") / "sessions", request.module.MOCK_SPEED)
+    yield bench
+    bench.close()
+
+
+@pytest.fixture
+def bench_win(request, qtbot, shared_bench, tmp_path):
+    """That window as a fresh one for this test; closed after the module's last test using it."""
+    from gui_support import last_to_use
+
+    qtbot.waitExposed(shared_bench.w)
+    yield shared_bench.for_test(qtbot, tmp_path / "sessions")
+    if last_to_use(request, "bench_win"):
+        shared_bench.close()

@@ -20,10 +20,8 @@ pytest.importorskip("pytestqt")
 
 from gui_support import (  # noqa: E402
     FAST_MOCK_SPEED,
-    SharedBench,
     dispose,
     ensure_connected,
-    last_to_use,
     open_window,
     run_until_completed,
     start_until_running,
@@ -58,22 +56,6 @@ def fast_win(qtbot, tmp_path):
     qtbot.addWidget(w)
     yield w
     dispose(w)
-
-
-@pytest.fixture(scope="module")
-def shared_bench(qapp, tmp_path_factory):
-    bench = SharedBench(tmp_path_factory.mktemp("bench") / "sessions", MOCK_SPEED)
-    yield bench
-    bench.close()
-
-
-@pytest.fixture
-def bench_win(request, qtbot, shared_bench, tmp_path):
-    """The module's one window on the mock bench, as a fresh one for this test
-    (:class:`gui_support.SharedBench`): a runtime and a mock started once, not per test."""
-    yield shared_bench.for_test(qtbot, tmp_path / "sessions")
-    if last_to_use(request, "bench_win"):
-        shared_bench.close()
 
 
 def type_into(qtbot, field, text: str) -> None:

@@ -232,6 +232,34 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
     return v if sign > 0 else 1.0 - v
 
 
+XI_START = 1.0
+"""ξ at the first grid point of every simulation: the wire starts cold, fully martensitic."""
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _reversal_ref(xi_r, dn, t, as_c, af_c, sh, mf_c, ms_c, sc):
+    """The scaling of the branch that starts at a reversal (T = ``t``, ξ = ``xi_r``) in
+    direction ``dn`` (the paper's moving common point)."""
+    if dn > 0:
+        return xi_r / max(_branch(t, as_c, af_c, sh, 1.0), 1e-12)
+    return (1.0 - xi_r) / max(_branch(t, mf_c, ms_c, sc, -1.0), 1e-12)
+
+
+@numba.njit(inline="always", error_model="numpy")
+def _xi_step(dn, m, ref, xi_r, xi, xi_eq, memory, bh, c1h, c0h, bc, c1c, c0c):
+    """One step of ξ: its equilibrium on the branch from the last reversal (``m`` = the major
+    branch at the new temperature, ξ_h heating, 1 - ξ_c cooling; unused with no direction yet),
+    blended by ``memory`` (see :func:`_wire_kernel`), and the first-order-hold lag behind it.
+    Returns (ξ, ξ_eq)."""
+    if dn > 0:
+        eq = min((1.0 - memory) * ref * m + memory * min(m, xi_r), xi_r)
+        return bh * xi + c1h * eq + c0h * xi_eq, eq
+    if dn < 0:
+        eq = max((1.0 - memory) * (1.0 - ref * m) + memory * max(1.0 - m, xi_r), xi_r)
+        return bc * xi + c1c * eq + c0c * xi_eq, eq
+    return bc * xi + c1c * xi_eq + c0c * xi_eq, xi_eq
+
+
 @numba.njit(cache=True, error_model="numpy")
 def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                  bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory):  # fmt: skip
@@ -249,11 +277,8 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
     xi_out = np.empty(n)
     temp = temp_in[0] if thermo else amb[0]
     temp_out[0] = temp
-    xi = 1.0
-    xi_eq = 1.0
-    xi_r = 1.0
-    xi_out[0] = 1.0
-    ref = 1.0
+    xi = xi_eq = xi_r = xi_out[0] = XI_START
+    ref = 1.0  # the major branch unscaled until the first reversal
     direction = 0
     a_const = math.exp(-rate)
     for k in range(n - 1):
@@ -276,22 +301,15 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
-            if dn > 0:
-                ref = xi_r / max(_branch(temp, as_c, af_c, sh, 1.0), 1e-12)
-            else:
-                ref = (1.0 - xi_r) / max(_branch(temp, mf_c, ms_c, sc, -1.0), 1e-12)
-        xi_eq_old = xi_eq
+            ref = _reversal_ref(xi_r, dn, temp, as_c, af_c, sh, mf_c, ms_c, sc)
         if dn > 0:
             major = _branch(new, as_c, af_c, sh, 1.0)
-            xi_eq = min((1.0 - memory) * ref * major + memory * min(major, xi_r), xi_r)
-            xi_new = bh * xi + c1h * xi_eq + c0h * xi_eq_old
         elif dn < 0:
             major = _branch(new, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
-            xi_eq = max((1.0 - memory) * (1.0 - ref * major) + memory * max(1.0 - major, xi_r),
-                        xi_r)  # fmt: skip
-            xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old
         else:
-            xi_new = bc * xi + c1c * xi_eq + c0c * xi_eq_old
+            major = 0.0
+        xi_new, xi_eq = _xi_step(dn, major, ref, xi_r, xi, xi_eq, memory,
+                                 bh, c1h, c0h, bc, c1c, c0c)  # fmt: skip
         if lat != 0.0 and not thermo:
             new += lat * (xi_new - xi)
         xi = xi_new
@@ -340,31 +358,17 @@ def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
             major[k] = _branch(temp_out[k], as_c, af_c, sh, 1.0)
         elif dirs[k] < 0:
             major[k] = _branch(temp_out[k], mf_c, ms_c, sc, -1.0)
-    xi = 1.0
-    xi_eq = 1.0
-    xi_r = 1.0
-    xi_out[0] = 1.0
-    ref = 1.0
+    xi = xi_eq = xi_r = xi_out[0] = XI_START
+    ref = 1.0  # the major branch unscaled until the first reversal
     direction = 0
     for k in range(n - 1):
         dn = dirs[k + 1]
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
-            if dn > 0:
-                ref = xi_r / max(_branch(temp_out[k], as_c, af_c, sh, 1.0), 1e-12)
-            else:
-                ref = (1.0 - xi_r) / max(_branch(temp_out[k], mf_c, ms_c, sc, -1.0), 1e-12)
-        xi_eq_old = xi_eq
-        m = major[k + 1]
-        if dn > 0:
-            xi_eq = min((1.0 - memory) * ref * m + memory * min(m, xi_r), xi_r)
-            xi = bh * xi + c1h * xi_eq + c0h * xi_eq_old
-        elif dn < 0:
-            xi_eq = max((1.0 - memory) * (1.0 - ref * m) + memory * max(1.0 - m, xi_r), xi_r)
-            xi = bc * xi + c1c * xi_eq + c0c * xi_eq_old
-        else:
-            xi = bc * xi + c1c * xi_eq + c0c * xi_eq_old
+            ref = _reversal_ref(xi_r, dn, temp_out[k], as_c, af_c, sh, mf_c, ms_c, sc)
+        xi, xi_eq = _xi_step(dn, major[k + 1], ref, xi_r, xi, xi_eq, memory,
+                             bh, c1h, c0h, bc, c1c, c0c)  # fmt: skip
         xi_out[k + 1] = xi
     return temp_out, xi_out
 

@@ -4,7 +4,7 @@ session until it runs, on a loaded machine."""
 from __future__ import annotations
 
 import gc
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,15 @@ def open_window(sessions_dir: str | Path, mock_speed: float = 1.0,
     w.resize(*size)
     w.show()
     return w
+
+
+def fresh_window(qtbot, tmp_path: Path, mock_speed: float) -> Iterator[MainWindow]:
+    """Fixture body: a shown window (not connected) with its own sessions folder, disposed
+    after the test."""
+    w = open_window(tmp_path / "sessions", mock_speed)
+    qtbot.addWidget(w)
+    yield w
+    dispose(w)
 
 
 def dispose(w: MainWindow) -> None:

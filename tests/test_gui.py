@@ -20,9 +20,8 @@ pytest.importorskip("pytestqt")
 
 from gui_support import (  # noqa: E402
     FAST_MOCK_SPEED,
-    dispose,
     ensure_connected,
-    open_window,
+    fresh_window,
     run_until_completed,
     start_until_running,
 )
@@ -43,19 +42,13 @@ MOCK_SPEED = 1.0
 @pytest.fixture
 def win(qtbot, tmp_path):
     """A fresh window, not connected."""
-    w = open_window(tmp_path / "sessions", MOCK_SPEED)
-    qtbot.addWidget(w)
-    yield w
-    dispose(w)
+    yield from fresh_window(qtbot, tmp_path, MOCK_SPEED)
 
 
 @pytest.fixture
 def fast_win(qtbot, tmp_path):
     """A fresh window on a faster mock bench (a session that must run its course)."""
-    w = open_window(tmp_path / "sessions", FAST_MOCK_SPEED)
-    qtbot.addWidget(w)
-    yield w
-    dispose(w)
+    yield from fresh_window(qtbot, tmp_path, FAST_MOCK_SPEED)
 
 
 def type_into(qtbot, field, text: str) -> None:

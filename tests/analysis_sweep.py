@@ -111,6 +111,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=None, help="processes per analysis")
     ap.add_argument("--seed", type=int, default=0, help="first seed (0)")
     ap.add_argument("--only", help="comma-separated effects")
+    ap.add_argument("--verbose", action="store_true", help="one line per draw: seed, verdict, why")
     args = ap.parse_args()
     make = {"independent": sessions_independent, "plant": sessions_plant,
             "third": sessions_third}[args.sim]  # fmt: skip
@@ -135,6 +136,9 @@ def main() -> int:
                 doc = summary(analyse(sess, workers=args.workers))
             cause = doc["cause"]
             named = [c["cause"] for c in doc["causes"]]
+            if args.verbose:
+                print(f"  {effect} seed {seed} value {value:.4g}: {'+'.join(named) or cause} "
+                      f"({doc['reason']})", flush=True)  # fmt: skip
             if "+" in effect:
                 ok = set(named) == set(effect.split("+"))
                 cause = "+".join(named) if named else cause

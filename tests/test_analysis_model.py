@@ -83,6 +83,16 @@ def test_sensor_lag_and_dead_time_delay_the_reading():
     np.testing.assert_allclose(dead_time(x, t, t[5])[5:], x[:-5], atol=1e-12)
 
 
+def test_stroke_may_grow_with_stress():
+    """The basis' fourth column is ξ·(σ − σ_ref)·L0: zero at the reference stress (a single
+    load), so the linear solve leaves it out there."""
+    g = current_grid(np.full(500, 1.6))
+    at_ref = simulate(g, dict(P, sigma_ref=170.0))
+    above = simulate(g, dict(P, sigma_ref=120.0))
+    assert np.all(at_ref.basis[:, 3] == 0.0)
+    np.testing.assert_allclose(above.basis[:, 3], 50.0 * above.basis[:, 0], rtol=1e-12)
+
+
 def test_tanaka_shape_starts_sharp_and_ends_in_a_tail():
     """shape −1: Tanaka's exponential law, ξ = exp(−a(T − T0)) above T0 on heating with the
     cosine's centre and mid slope (a = π/w, T0 = centre − ln2/a); flat below T0."""

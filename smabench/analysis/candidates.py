@@ -88,10 +88,12 @@ DERIVED_UNITS = {
     "eps_l": "strain",
     "alpha_per_k": "1/K",
     "eps_mix": "strain (× ξ(1-ξ))",
+    "eps_l_per_mpa": "strain/MPa (× ξ·(σ − σ_ref): the stroke's growth with stress)",
     "stress_rate_mpa_per_k": "MPa/K",
     "resistivity_difference_uohm_cm": "µΩ·cm",
     "latent_heat_j_kg": "J/kg",
     "sensor_delay_s": "s",
+    "drift_per_cycle": "strain/cycle (mean over the first 10 cycles)",
 }
 """Units of quantities derived from the fitted parameters (reported, not fitted)."""
 
@@ -148,7 +150,7 @@ _LIST = (
         (Param("cyc_rate", "strain/cycle (at the first cycle)", 2e-4, -3e-3, 3e-3, 0.0),
          Param("cyc_n0", "cycles", 20.0, 0.3, 1000.0, 30.0),
          Param("cyc_q", "1 (decay exponent of the rate)", 0.5, 0.0, 3.0, 1.0)),
-        headline="cyc_rate",
+        headline="drift_per_cycle",
         text="residual strain grows with the number of transformation cycles (functional "
         "fatigue, training), at a rate that may fall as cycles accumulate",
         needs="cycles", min_cycles=3, many_cycles=("cyc_q",),

@@ -11,8 +11,9 @@ a Preisach model's wiping-out; between: a blend); first-order lags of ξ behind 
 on each branch (``tau_cool_s``, the nucleation-limited forward transformation, and
 ``tau_heat_s`` = ``heat_lag_ratio``·τ_cool ≤ τ_cool/2: the reverse transformation needs no
 nucleation, so equal lags on both branches are a sensor's, not the wire's);
-the length ``L0·((ε_L + σ·ΔC)·ξ + ε_mix·ξ(1-ξ) + α·(T - 22 °C))`` plus a sensor zero, with
-ε_L, ε_mix, α and the zero solved linearly. With several loads the thermal hysteresis narrows
+the length ``L0·((ε_L + ε_σ·(σ - σ_ref) + σ·ΔC)·ξ + ε_mix·ξ(1-ξ) + α·(T - 22 °C))`` plus a
+sensor zero, with ε_L, ε_σ (``eps_l_per_mpa``: the stroke grows with stress, detwinning), ε_mix,
+α and the zero solved linearly. With several loads the thermal hysteresis narrows
 with stress (paper Fig. 11 trend).
 
 Candidate extensions (each its own parameters, 0 = off), in SI-like units inside:
@@ -49,8 +50,11 @@ LOGISTIC_K = 2.0 * math.pi
 """Logistic branch steepness per unit window: the same slope at the centre as the cosine."""
 LN2 = math.log(2.0)
 
-LINEAR = ("eps_l", "alpha_per_k", "eps_mix")
-"""Coefficients of the basis columns, solved by linear least squares inside every fit."""
+LINEAR = ("eps_l", "alpha_per_k", "eps_mix", "eps_l_per_mpa")
+"""Coefficients of the basis columns, solved by linear least squares inside every fit:
+ξ (the transformation strain at the reference stress), T − 22 °C (thermal expansion),
+ξ·(1 − ξ) (a bent ξ → length map) and ξ·(σ − σ_ref) (the transformation strain grows with
+stress: detwinning and the elastic part together; a single load leaves it 0)."""
 
 
 @dataclass
@@ -383,7 +387,8 @@ def temperature(g: Grid, p: dict[str, float]) -> np.ndarray:
 class Simulated:
     temp: np.ndarray
     xi: np.ndarray
-    basis: np.ndarray  # columns (× L0, mm per unit of LINEAR): ξ, T - 22 °C, ξ·(1 - ξ)
+    basis: np.ndarray  # columns (× L0, mm per unit of LINEAR): ξ, T - 22 °C, ξ·(1 - ξ),
+    # ξ·(σ - σ_ref)
     fixed: np.ndarray  # known part: elastic ξ term + residual strain, mm
 
 
@@ -428,7 +433,9 @@ def simulate(
     if rate:
         fixed = fixed + l0 * residual_strain(n_cyc, rate, p.get("cyc_n0", 1e3),
                                              p.get("cyc_q", 1.0))  # fmt: skip
-    basis = np.column_stack((l0 * xi, l0 * (temp - T_REF_C), l0 * xi * (1.0 - xi)))
+    ds = g.stress_mpa - p.get("sigma_ref", g.stress_mpa)
+    basis = np.column_stack((l0 * xi, l0 * (temp - T_REF_C), l0 * xi * (1.0 - xi),
+                             l0 * ds * xi))  # fmt: skip
     if lag > 1e-6:
         basis = np.column_stack(
             [first_order_lag(basis[:, j], g.dt, lag) for j in range(basis.shape[1])]
@@ -452,23 +459,26 @@ def pointwise(p: dict[str, float]) -> bool:
             and p.get("lag_s", 0.0) <= 1e-6 and p.get("delay_s", 0.0) <= 1e-6)  # fmt: skip
 
 
-def fill_pointwise(g: Grid, state: tuple[np.ndarray, np.ndarray], at: np.ndarray,
-                   obs: np.ndarray, basis: np.ndarray, y: np.ndarray, row0: int) -> None:
+def fill_pointwise(g: Grid, p: dict[str, float], state: tuple[np.ndarray, np.ndarray],
+                   at: np.ndarray, obs: np.ndarray, basis: np.ndarray, y: np.ndarray,
+                   row0: int) -> None:  # fmt: skip
     """:func:`simulate`'s basis at grid points ``at`` into ``basis[row0:]`` and ``obs`` minus
     its fixed part into ``y[row0:]``, in place, for parameters where :func:`pointwise` holds
     (the same numbers, without the temporaries: the inner loop of every fit)."""
     temp, xi = state
     k_fixed = g.length_mm * g.stress_mpa * DCOMPLIANCE_PER_MPA
-    _fill_pointwise(temp, xi, at, g.length_mm, k_fixed, obs, basis, y, row0)
+    ds = g.stress_mpa - p.get("sigma_ref", g.stress_mpa)
+    _fill_pointwise(temp, xi, at, g.length_mm, k_fixed, ds, obs, basis, y, row0)
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _fill_pointwise(temp, xi, at, l0, k_fixed, obs, basis, y, row0):  # fmt: skip
+def _fill_pointwise(temp, xi, at, l0, k_fixed, ds, obs, basis, y, row0):  # fmt: skip
     for i in range(len(at)):
         x = xi[at[i]]
         basis[row0 + i, 0] = l0 * x
         basis[row0 + i, 1] = l0 * (temp[at[i]] - T_REF_C)
         basis[row0 + i, 2] = l0 * x * (1.0 - x)
+        basis[row0 + i, 3] = l0 * ds * x
         y[row0 + i] = obs[i] - k_fixed * x
 
 

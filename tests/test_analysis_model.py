@@ -164,3 +164,18 @@ def test_verdict_tells_heat_causes_apart_on_cooling_and_by_v_over_i():
     v = verdict(*args, ruled_out={"phase_resistance": "flat V/I"})
     assert v["cause"] == "latent_heat"
     assert not v["rows"]["phase_resistance"]["significant"]
+
+
+def test_verdict_says_which_candidate_was_ruled_out():
+    """A sensor lag that beats the baseline but not kinetic lags of ξ is not named; the reason
+    says that it would have passed and why it is not named (not "no extension cuts it")."""
+    from smabench.analysis.core import verdict
+
+    rng = np.random.default_rng(1)
+    base = _units(rng, 1.0, 1.0)
+    cand = {"sensor_lag": _units(rng, 0.4, 0.4), "ambient_drift": _units(rng, 1.0, 1.0)}
+    rmse = {c: float(np.sqrt(np.mean(u**2))) for c, u in cand.items()}
+    v = verdict(base, cand, 1.0, rmse, 0.01, 10.0, {"sensor_lag": "no better than kinetics"})
+    assert v["cause"] == "unexplained"
+    assert "sensor_lag would (typical gain 6" in v["reason"]
+    assert v["reason"].endswith("ruled out: no better than kinetics")

@@ -914,6 +914,12 @@ def verdict(
             f"({STRUCTURED_QUANTILE:.0f} % of the units below {tail:.4g} mm) vs floor "
             f"{floor:.4g} mm"
         )
+        barred = [c for c in order if rows[c].get("ruled_out") and rows[c]["p_value"] < ALPHA
+                  and rows[c]["unit_gain"] >= MIN_GAIN]  # fmt: skip
+        for c in barred:  # it would have passed: say why it is not named
+            reason += (f"; {c} would (typical gain {rows[c]['unit_gain']:.1%}, "
+                       f"p = {rows[c]['p_value']:.2g}) but is ruled out: "
+                       f"{rows[c]['ruled_out']}")  # fmt: skip
     else:
         best = sig[0]
         runner = next((c for c in order if c != best), None)
@@ -1321,8 +1327,8 @@ def _evidence(prob: Problem, fits: dict, preds: dict, unit_rmse: dict,
         if not (p < ALPHA_SEPARATION and g > 0):
             out["sensor_lag"] = (
                 f"no better than kinetic lags of ξ alone (typical gain {g:.1%}, p = {p:.2g}): "
-                "the delay is the transformation's, not the reading's (thermal expansion and "
-                "rests are not delayed)"
+                "a delayed transformation explains the data as well as a delayed reading "
+                "(the reading's delay would show in the thermal expansion and the rests)"
             )
     if "phase_resistance" in fits and fits["phase_resistance"]:
         vi = _vi_fit(prob.sessions, preds["phase_resistance"])

@@ -7,9 +7,10 @@ third simulator also two effects at once) draws ``n`` magnitudes within the phys
 ``test_analysis_independent.CASES`` (the project plant: ``test_analysis.RANGES``; the third
 simulator: ``test_analysis_third.CASES``), makes the sessions, runs the analysis and tallies the
 verdicts: right, ``unexplained``/``none`` (honest misses), or a wrong name (the failure that
-matters), with the median relative error of the headline parameter when named right. Two
-effects are right when ``causes`` holds both and nothing else. Not a test (it takes minutes);
-its figures go into docs/analysis.md.
+matters), with the median relative error of the headline parameter when named right. One
+effect is right when it is the cause and nothing else is in ``causes`` (a second cause that is
+not there is a wrong name); two effects when ``causes`` holds both and nothing else. Not a
+test (it takes minutes); its figures go into docs/analysis.md.
 """
 
 from __future__ import annotations
@@ -145,7 +146,10 @@ def main() -> int:
             else:
                 right = effect if effect in REGISTRY else (
                     "none" if effect == "none" else "unexplained")  # fmt: skip
-                ok = cause == right
+                extra = [c for c in named if c != right]  # a second cause that is not there
+                ok = cause == right and not extra
+                if extra and cause == right:
+                    cause = "+".join(named)
             if ok:
                 tally["right"] += 1
                 if want is not None:

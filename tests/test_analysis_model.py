@@ -179,3 +179,23 @@ def test_verdict_says_which_candidate_was_ruled_out():
     assert v["cause"] == "unexplained"
     assert "sensor_lag would (typical gain 6" in v["reason"]
     assert v["reason"].endswith("ruled out: no better than kinetics")
+
+
+def test_a_candidate_off_in_every_fold_cannot_be_named():
+    """A candidate whose own magnitude sits at 0 in every fold gained only by refitting the
+    baseline's parameters (seen: convection_nonlinear 'named' for pulley friction with
+    conv_k = 5e-8 1/K); on in one fold, it may be named. sensor_lag is off only when both its
+    lag and its dead time are 0."""
+    from smabench.analysis.core import FitResult, off_everywhere
+
+    def fit(**values):
+        z = np.zeros(0)
+        return FitResult("m", [], z, z, z, values, {}, {}, 0.0, 0, 0.0)
+
+    assert "conv_k = 4.7e-08" in off_everywhere("convection_nonlinear",
+                                                [fit(conv_k=4.7e-8)] * 3)  # fmt: skip
+    assert off_everywhere("convection_nonlinear", [fit(conv_k=0.0)] * 2 + [fit(conv_k=3e-3)]) \
+        is None  # fmt: skip
+    assert off_everywhere("sensor_lag", [fit(lag_s=0.0, delay_s=0.3)] * 3) is None
+    assert off_everywhere("sensor_lag", [fit(lag_s=1e-6, delay_s=0.0)] * 3)
+    assert off_everywhere("cycle_drift", [fit(cyc_rate=0.0, cyc_n0=30.0, cyc_q=1.0)] * 3)

@@ -48,7 +48,8 @@ class Candidate:
     ``fresh_starts``: values of the first parameter for extra starts from the data (coupled
     effects bend the baseline's thermal parameters); ``second_start``: one more start from the
     baseline's fit with the first parameter at this value. ``many_cycles``: parameters fitted
-    only from 20 complete cycles on (else held at their start)."""
+    only from 20 complete cycles on (else held at their start). ``magnitude``: the parameters
+    whose 0 turns the cause off (empty: the first)."""
 
     name: str
     params: tuple[Param, ...]
@@ -60,10 +61,16 @@ class Candidate:
     fresh_starts: tuple[float, ...] = ()
     second_start: float | None = None
     many_cycles: tuple[str, ...] = ()
+    magnitude: tuple[str, ...] = ()
 
     @property
     def param_names(self) -> tuple[str, ...]:
         return tuple(p.name for p in self.params)
+
+    @property
+    def off_params(self) -> tuple[str, ...]:
+        """The parameters that are all 0 when the cause is off."""
+        return self.magnitude or (self.params[0].name,)
 
 
 BASELINE: tuple[Param, ...] = (
@@ -137,6 +144,7 @@ _LIST = (
         text="the displacement reading lags the wire (sensor filter or transport delay): "
         "every motion is late by the same time, the transformation on both branches, the "
         "thermal expansion and the rests alike",
+        magnitude=("lag_s", "delay_s"),
     ),  # fmt: skip
     Candidate(
         "ambient_drift",

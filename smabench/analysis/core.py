@@ -1267,6 +1267,8 @@ def _more_causes(prob, folds, fits, v, run_all, report, evaluate, unit_rmse, rms
             for fi, f in enumerate(fits[combo]):
                 report(combo, fi, f)
             evaluate(combo)
+            if off_everywhere(c, fits[combo]):
+                continue  # on top of the causes it is off: nothing of its own to name
             gain = unit_gain(unit_rmse[current], unit_rmse[combo], tie)
             p = paired_greater(unit_rmse[current], unit_rmse[combo], tie)
             v["rows"][c].setdefault("on_top", {})[current] = {"unit_gain": gain, "p_value": p}
@@ -1312,12 +1314,36 @@ VI_FLAT = 0.3
 fraction of the resistivity difference its fit needs (the voltage measures R directly)."""
 
 
+OFF_TOL = 1e-3
+"""A candidate's magnitude parameter within this × its scale of 0 is off."""
+
+
+def off_everywhere(cand: str, fits: list[FitResult]) -> str | None:
+    """Why ``cand`` cannot be named when its fits (one per fold) have it off in every fold
+    (all of ``Candidate.off_params`` within OFF_TOL × scale of 0): whatever the model gains
+    over the baseline then comes from refitting the baseline's parameters (another optimum),
+    not from the cause. None when it is on in some fold."""
+    names = REGISTRY[cand].off_params
+    if not fits or any(any(abs(f.values.get(n, 0.0)) > OFF_TOL * PARAMS[n].scale
+                           for n in names) for f in fits):  # fmt: skip
+        return None
+    shown = ", ".join(f"{n} = {np.mean([f.values.get(n, 0.0) for f in fits]):.2g}"
+                      for n in names)  # fmt: skip
+    return (f"its own parameter is 0 in every fold ({shown}): the gain is the baseline's "
+            "parameters refitted to another optimum, not this cause")
+
+
 def _evidence(prob: Problem, fits: dict, preds: dict, unit_rmse: dict,
               tie: float) -> dict[str, str]:  # fmt: skip
-    """Candidates the data rule out, with the reason: a flat V/I against ξ rules out
-    phase_resistance whatever its fit of the position gains; a sensor_lag that does no better
-    than equal kinetic lags of ξ (the rival) is the wire's kinetics, not the sensor."""
+    """Candidates the data rule out, with the reason: a candidate that is off in every fold
+    (:func:`off_everywhere`); a flat V/I against ξ rules out phase_resistance whatever its fit
+    of the position gains; a sensor_lag that does no better than equal kinetic lags of ξ (the
+    rival) is the wire's kinetics, not the sensor."""
     out: dict[str, str] = {}
+    for c in prob.candidates:
+        why = off_everywhere(c, fits.get(c, []))
+        if why:
+            out[c] = why
     if "sensor_lag" in fits and KINETIC_RIVAL in unit_rmse:
         # no ties here: the rests, where both sit near the noise, are part of the evidence (a
         # sensor delays their slow thermal motion too, kinetics does not)

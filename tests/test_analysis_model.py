@@ -199,3 +199,22 @@ def test_a_candidate_off_in_every_fold_cannot_be_named():
     assert off_everywhere("sensor_lag", [fit(lag_s=0.0, delay_s=0.3)] * 3) is None
     assert off_everywhere("sensor_lag", [fit(lag_s=1e-6, delay_s=0.0)] * 3)
     assert off_everywhere("cycle_drift", [fit(cyc_rate=0.0, cyc_n0=30.0, cyc_q=1.0)] * 3)
+
+
+def test_kinetic_rival_on_top_of_a_cause():
+    """The kinetic rival of a sensor lag can sit on top of causes named before
+    (``convection_nonlinear+kinetic_lag``: the cause's parameters, a dead time of ξ, lags up to
+    twice as long on heating); a sensor lag that does not beat it is ruled out."""
+    from smabench.analysis.core import KINETIC_RIVAL, KINETIC_RIVAL_RATIO, _rival_lost, _spec
+
+    class S:
+        kind, cycle, n_complete, stress_mpa = "current", np.arange(12) // 4, 3, 170.0
+
+    prob = type("P", (), {"sessions": [S()]})()
+    names, _scale, _lo, hi, _start = _spec(prob, "convection_nonlinear+" + KINETIC_RIVAL)
+    assert {"conv_k", "xi_delay_s", "heat_lag_ratio"} <= set(names)
+    assert hi[names.index("heat_lag_ratio")] == KINETIC_RIVAL_RATIO
+    rng = np.random.default_rng(3)
+    rival = _units(rng, 1.0, 1.0)
+    assert _rival_lost(rival, _units(rng, 0.6, 0.6)) is None
+    assert _rival_lost(rival, _units(rng, 1.0, 1.0)).startswith("no better than kinetic lags")

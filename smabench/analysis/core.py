@@ -1156,7 +1156,7 @@ def analyse(
             evaluate(model)
         if rival:
             evaluate(KINETIC_RIVAL)
-        ruled_out = _evidence(prob, fits, preds, unit_rmse, TIE_NOISE * noise)
+        ruled_out = _evidence(prob, fits, preds, unit_rmse, TIE_NOISE * noise, units)
         cooling = np.array([branch_ids(by_name[name])[ii[0]] % 2 == 1 for name, _f, ii in units],
                            dtype=bool)  # fmt: skip
         def decide() -> dict:
@@ -1428,12 +1428,34 @@ def off_everywhere(cand: str, fits: list[FitResult]) -> str | None:
             "parameters refitted to another optimum, not this cause")
 
 
-def _evidence(prob: Problem, fits: dict, preds: dict, unit_rmse: dict,
-              tie: float) -> dict[str, str]:  # fmt: skip
+XI_STILL = 0.002
+"""ξ within this of 0 or 1 in both models: the transformation is still, only the thermal
+expansion (and the rests) can move the reading there."""
+
+
+def _still_errors(prob: Problem, preds: dict, units: list, a: str, b: str):
+    """Per-unit held-out RMSE of models ``a`` and ``b`` on the samples of each unit where both
+    models' ξ is still (:data:`XI_STILL`); units with fewer than 10 such samples left out."""
+    by_name = {s.name: s for s in prob.sessions}
+    ea, eb = [], []
+    for name, _fi, ii in units:
+        xa, xb = preds[a][name].xi[ii], preds[b][name].xi[ii]
+        m = (np.minimum(xa, 1.0 - xa) < XI_STILL) & (np.minimum(xb, 1.0 - xb) < XI_STILL)
+        if m.sum() < 10:
+            continue
+        y = by_name[name].pos[ii][m]
+        ea.append(_rmse(preds[a][name].position_mm[ii][m] - y))
+        eb.append(_rmse(preds[b][name].position_mm[ii][m] - y))
+    return np.array(ea), np.array(eb)
+
+
+def _evidence(prob: Problem, fits: dict, preds: dict, unit_rmse: dict, tie: float,
+              units: list) -> dict[str, str]:  # fmt: skip
     """Candidates the data rule out, with the reason: a candidate that is off in every fold
     (:func:`off_everywhere`); a flat V/I against ξ rules out phase_resistance whatever its fit
     of the position gains; a sensor_lag that does no better than equal kinetic lags of ξ (the
-    rival) is the wire's kinetics, not the sensor."""
+    rival), neither over whole units nor where the transformation is still
+    (:func:`_still_errors`), cannot be told from the wire's kinetics."""
     out: dict[str, str] = {}
     for c in prob.candidates:
         why = off_everywhere(c, fits.get(c, []))
@@ -1442,7 +1464,11 @@ def _evidence(prob: Problem, fits: dict, preds: dict, unit_rmse: dict,
     if "sensor_lag" in fits and KINETIC_RIVAL in unit_rmse:
         why = _rival_lost(unit_rmse[KINETIC_RIVAL], unit_rmse["sensor_lag"])
         if why:
-            out["sensor_lag"] = why
+            # where the transformation is still, kinetics delays nothing and a sensor still
+            # delays the thermal expansion and the rests: the evidence the whole units dilute
+            rival, lag = _still_errors(prob, preds, units, KINETIC_RIVAL, "sensor_lag")
+            if len(rival) < 6 or _rival_lost(rival, lag):
+                out["sensor_lag"] = why
     if "phase_resistance" in fits and fits["phase_resistance"]:
         vi = _vi_fit(prob.sessions, preds["phase_resistance"])
         if vi is not None:

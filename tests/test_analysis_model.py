@@ -218,3 +218,23 @@ def test_kinetic_rival_on_top_of_a_cause():
     rival = _units(rng, 1.0, 1.0)
     assert _rival_lost(rival, _units(rng, 0.6, 0.6)) is None
     assert _rival_lost(rival, _units(rng, 1.0, 1.0)).startswith("no better than kinetic lags")
+
+
+def test_still_errors_keep_only_where_the_transformation_is_still():
+    """The sensor-against-kinetics evidence where ξ is within XI_STILL of 0 or 1 in both
+    models: per unit, the two models' RMSE on those samples only; units with fewer than ten
+    such samples are left out."""
+    from smabench.analysis.core import Prediction, _still_errors
+
+    n = 40
+    xi = np.concatenate((np.ones(15), np.linspace(1.0, 0.0, 12)[1:-1], np.zeros(15)))
+    pos = np.zeros(n)
+    sess = type("S", (), {"name": "s", "pos": pos})()
+    prob = type("P", (), {"sessions": [sess]})()
+    a = Prediction(np.where(xi == 1.0, 0.3, 0.0), np.zeros(n), xi)  # off by 0.3 where ξ = 1
+    b = Prediction(np.full(n, 0.1), np.zeros(n), xi)
+    units = [("s", 0, np.arange(0, 30)), ("s", 0, np.arange(20, 28))]  # the second: too few
+    ea, eb = _still_errors(prob, {"a": {"s": a}, "b": {"s": b}}, units, "a", "b")
+    still = np.r_[np.ones(15) * 0.3, np.zeros(5)]  # ξ = 1 (15 samples), then ξ = 0 (5)
+    np.testing.assert_allclose(ea, [np.sqrt(np.mean(still**2))])
+    np.testing.assert_allclose(eb, [0.1])

@@ -107,6 +107,28 @@ def test_tanaka_shape_starts_sharp_and_ends_in_a_tail():
     assert xi[np.argmin(np.abs(temp - 85.0))] > 1e-3  # the tail reaches past the window
 
 
+@pytest.mark.parametrize("current_a", [0.6, 1.2])
+def test_transformation_starts_later_the_faster_the_wire_heats(current_a):
+    """rate_shift_k: heating starts at As + k·√(dT/dt) (thermally activated nucleation), then
+    follows the temperature with that shift held, though the rate falls as the wire heats; the
+    coupled pass (here with a phase resistance of 1e-12) gives the same numbers."""
+    g = current_grid(np.full(3000, current_a))
+    p = dict(P, rate_shift_k=1.0, h_shape=0.0)
+    temp, xi = wire_state(g, p)
+    as_c = 70.0 - 5.0
+    k0 = int(np.argmax(xi < 1.0 - 1e-12))  # the first step off the martensite
+    rate = (temp[k0] - temp[k0 - 1]) / g.dt
+    shift = math.sqrt(rate)
+    assert temp[k0 - 1] - shift < as_c <= temp[k0] - shift + 1e-9
+    assert shift > 3.0  # not a small correction at these rates
+    on = (xi < 1.0) & (xi > 0.0)
+    t_seen = temp[on] - shift
+    want = 0.5 * (1.0 + np.cos(math.pi * (t_seen - as_c) / 10.0))
+    np.testing.assert_allclose(xi[on], want, atol=1e-9)  # the start's shift, not today's rate
+    _, xi_c = wire_state(g, dict(p, beta=1e-12))
+    np.testing.assert_allclose(xi_c, xi, atol=1e-9)
+
+
 def test_loop_direction_is_built_in():
     """The cooling centre is h_mid − hyst_k (hyst_k ≥ 0 by its bounds): never above heating."""
     from smabench.analysis.model import Temps
@@ -128,11 +150,18 @@ def test_residual_strain_family(q, n0):
 
 
 def test_registry_declares_every_candidate_once():
-    from smabench.analysis.candidates import BASELINE, CP_J_KGK, PARAMS, REGISTRY, RIVAL
+    from smabench.analysis.candidates import (
+        BASELINE,
+        CP_J_KGK,
+        PARAMS,
+        RATE_KINETICS,
+        REGISTRY,
+        RIVAL,
+    )
     from smabench.physics.wire import PAPER_WIRE
 
-    names = [p.name for p in (*BASELINE, *RIVAL)] + [p.name for c in REGISTRY.values()
-                                                     for p in c.params]
+    names = [p.name for p in (*BASELINE, *RIVAL, *RATE_KINETICS)] + [
+        p.name for c in REGISTRY.values() for p in c.params]
     assert len(names) == len(set(names)) == len(PARAMS)
     for c in REGISTRY.values():
         assert c.text and c.headline and c.params

@@ -183,7 +183,14 @@ RIVAL: tuple[Param, ...] = (
 """Extra parameter of the kinetic rival of ``sensor_lag`` (``core.KINETIC_RIVAL``): the
 transformation late by a dead time, the thermal expansion not."""
 
-PARAMS: dict[str, Param] = {p.name: p for p in (*BASELINE, *RIVAL)}
+RATE_KINETICS: tuple[Param, ...] = (
+    Param("rate_shift_k", "K per √(K/s) (the transformation starts k·√|dT/dt| late: As "
+          "higher on heating, Ms lower on cooling)", 0.5, 0.0, 5.0, 0.8),
+)
+"""Extra parameter of the baseline's rate-dependent kinetics (``core.RATE_KINETICS``): the wire's
+own physics, not a hidden effect; tried only when no candidate is named (see there)."""
+
+PARAMS: dict[str, Param] = {p.name: p for p in (*BASELINE, *RIVAL, *RATE_KINETICS)}
 for _c in _LIST:
     PARAMS.update({p.name: p for p in _c.params})
 

@@ -10,10 +10,14 @@ the reversal point, the paper's moving common point; 1: ξ held until the major 
 a Preisach model's wiping-out; between: a blend); first-order lags of ξ behind its equilibrium
 on each branch (``tau_cool_s``, the nucleation-limited forward transformation, and
 ``tau_heat_s`` = ``heat_lag_ratio``·τ_cool ≤ τ_cool/2: the reverse transformation needs no
-nucleation, so equal lags on both branches are a sensor's, not the wire's);
-the length ``L0·((ε_L + ε_σ·(σ - σ_ref) + σ·ΔC)·ξ + ε_mix·ξ(1-ξ) + α·(T - 22 °C))`` plus a
-sensor zero, with ε_L, ε_σ (``eps_l_per_mpa``: the stroke grows with stress, detwinning), ε_mix,
-α and the zero solved linearly. With several loads the thermal hysteresis narrows
+nucleation, so equal lags on both branches are a sensor's, not the wire's); rate-dependent
+transformation temperatures (``rate_shift_k``: each branch starts at As + k·√|dT/dt| on heating,
+Ms − k·√|dT/dt| on cooling, later the faster the temperature moves, as thermally activated
+nucleation takes time; once started it follows the temperature, its shift held at the value it
+started with; a first-order lag alone moves the branches in proportion to the rate); the length
+``L0·((ε_L + ε_σ·(σ - σ_ref) + σ·ΔC)·ξ + ε_mix·ξ(1-ξ) + α·(T - 22 °C))`` plus a sensor zero,
+with ε_L, ε_σ (``eps_l_per_mpa``: the stroke grows with stress, detwinning), ε_mix, α and the
+zero solved linearly. With several loads the thermal hysteresis narrows
 with stress (paper Fig. 11 trend).
 
 Candidate extensions (each its own parameters, 0 = off), in SI-like units inside:
@@ -171,12 +175,13 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
     Current-driven grids: the heat balance (exact zero-order-hold steps) from the recorded
     ambient (plus ``drift_k_h``) with the coupled terms of the candidates; thermometer loops:
     the measured temperature. ξ: scaled branches from the last reversal (return-point memory),
-    first-order lags τ_heat / τ_cool behind the equilibrium on each branch."""
+    seen at T ∓ ``rate_shift_k``·√|dT/dt| (current-driven grids), first-order lags τ_heat /
+    τ_cool behind the equilibrium on each branch."""
     tt = Temps(p, g.stress_mpa)
     thermo = g.kind == "thermo"
     if thermo:
         temp_in, heat_k, amb, rate = np.ascontiguousarray(g.temp, dtype=float), _NONE, _NONE, 0.0
-        tau_h = tau_c = 0.0
+        tau_h = tau_c = shift_k = 0.0
     else:
         k_a2 = g.resistance_ohm * p["tau_s"] / g.heat_capacity_j_k  # K per A²
         amb = g.amb
@@ -187,12 +192,13 @@ def wire_state(g: Grid, p: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         amb = np.ascontiguousarray(amb, dtype=float)
         tau_c = p.get("tau_cool_s", 0.0)
         tau_h = p["tau_heat_s"] if "tau_heat_s" in p else p.get("heat_lag_ratio", 0.0) * tau_c
+        shift_k = p.get("rate_shift_k", 0.0) / math.sqrt(g.dt)  # K per √(K per step)
     beta, lat, conv = p.get("beta", 0.0), p.get("lat_k", 0.0), p.get("conv_k", 0.0)
     # the temperature does not depend on ξ (no phase resistance, no latent heat): three short
     # passes give the same numbers as the one coupled pass in about half the time
     kernel = _wire_kernel if (beta or lat) and not thermo else _wire_kernel_uncoupled
     return kernel(
-        thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
+        thermo, temp_in, heat_k, amb, rate, beta, lat, conv, shift_k,
         *_foh(g.dt, tau_h), *_foh(g.dt, tau_c),
         tt.as_c, tt.af_c, tt.h_shape, tt.mf_c, tt.ms_c, tt.c_shape, p.get("memory", 0.0),
     )  # fmt: skip
@@ -236,6 +242,23 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
     return v if sign > 0 else 1.0 - v
 
 
+@numba.njit(inline="always", error_model="numpy")
+def _rate_shift(dn, new, d, shift_k, frozen, as_c, ms_c):
+    """(shift, frozen) of one step: the branch is read at T - shift. Before the branch starts
+    (T - shift below As on heating, above Ms on cooling) the shift follows the rate,
+    ``shift_k``·√|ΔT| (K per √K of one step's change); from there it stays at its value then:
+    once nucleated, the transformation follows the temperature whatever the rate does.
+    ``frozen`` < 0: not started (reset at every reversal)."""
+    if shift_k == 0.0 or dn == 0:
+        return 0.0, frozen
+    if frozen >= 0.0:
+        return dn * frozen, frozen
+    s = shift_k * math.sqrt(abs(d))
+    if (dn > 0 and new - s >= as_c) or (dn < 0 and new + s <= ms_c):
+        frozen = s
+    return dn * s, frozen
+
+
 XI_START = 1.0
 """ξ at the first grid point of every simulation: the wire starts cold, fully martensitic."""
 
@@ -265,14 +288,16 @@ def _xi_step(dn, m, ref, xi_r, xi, xi_eq, memory, bh, c1h, c0h, bc, c1c, c0c):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
+def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv, shift_k,
                  bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc, memory):  # fmt: skip
     """One pass over the grid (the same discrete equations as the plant's ``Plant.step``).
 
     ``heat_k[n]`` = R·I²/conductance (K) over step n, ``rate`` = dt/τ; the heat input scales
     with 1 + β(0.5 - ξ), the conductance with 1 + k(T - T_a); latent heat adds λ·Δξ. A new
     direction of T (moves below 1e-9 K keep the last one) starts a scaled branch at the
-    reversal; ξ lags its equilibrium value by (b, c1, c0) per branch (see :func:`_foh`).
+    reversal; the branches are read at T - dn·shift (:func:`_rate_shift`: transformation
+    temperatures that move with the rate until the branch starts); ξ lags its
+    equilibrium value by (b, c1, c0) per branch (see :func:`_foh`).
     ``memory`` blends the branch from a reversal (T_r, ξ_r): 0 scales the major branch through
     the reversal point (the paper's moving common point; Liang–Rogers, Brinson), 1 holds ξ_r
     until the major branch comes back to it (a Preisach model's wiping-out memory)."""
@@ -284,6 +309,7 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
     xi = xi_eq = xi_r = xi_out[0] = XI_START
     ref = 1.0  # the major branch unscaled until the first reversal
     direction = 0
+    frozen = -1.0
     a_const = math.exp(-rate)
     for k in range(n - 1):
         if thermo:
@@ -302,14 +328,17 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
                 new = t_inf + (temp - t_inf) * a_const
         d = new - temp
         dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
+        if dn != direction:
+            frozen = -1.0
+        shift, frozen = _rate_shift(dn, new, d, shift_k, frozen, as_c, ms_c)
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
-            ref = _reversal_ref(xi_r, dn, temp, as_c, af_c, sh, mf_c, ms_c, sc)
+            ref = _reversal_ref(xi_r, dn, temp - shift, as_c, af_c, sh, mf_c, ms_c, sc)
         if dn > 0:
-            major = _branch(new, as_c, af_c, sh, 1.0)
+            major = _branch(new - shift, as_c, af_c, sh, 1.0)
         elif dn < 0:
-            major = _branch(new, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
+            major = _branch(new - shift, mf_c, ms_c, sc, -1.0)  # 1 - ξ_c
         else:
             major = 0.0
         xi_new, xi_eq = _xi_step(dn, major, ref, xi_r, xi, xi_eq, memory,
@@ -324,7 +353,7 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
+def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv, shift_k,
                            bh, c1h, c0h, bc, c1c, c0c, as_c, af_c, sh, mf_c, ms_c, sc,
                            memory):  # fmt: skip
     """:func:`_wire_kernel` where the temperature does not depend on ξ (``beta``, ``lat`` unused,
@@ -337,10 +366,13 @@ def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
     xi_out = np.empty(n)
     dirs = np.zeros(n, dtype=np.int8)
     major = np.zeros(n)
+    t_rev = np.empty(n)  # T - shift at step k, seen from the step k → k+1 (a reversal's point)
+    t_br = np.empty(n)  # T - shift at step k, seen from the step k-1 → k (the branch's)
     temp = temp_in[0] if thermo else amb[0]
     temp_out[0] = temp
     a_const = math.exp(-rate)
     direction = 0
+    frozen = -1.0
     for k in range(n - 1):
         if thermo:
             new = temp_in[k + 1]
@@ -353,15 +385,21 @@ def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
             t_inf = amb[k] + heat_k[k]
             new = t_inf + (temp - t_inf) * a_const
         d = new - temp
-        direction = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
+        dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
+        if dn != direction:
+            frozen = -1.0
+        direction = dn
         dirs[k + 1] = direction
+        shift, frozen = _rate_shift(direction, new, d, shift_k, frozen, as_c, ms_c)
+        t_rev[k] = temp - shift
+        t_br[k + 1] = new - shift
         temp = new
         temp_out[k + 1] = new
     for k in range(1, n):
         if dirs[k] > 0:
-            major[k] = _branch(temp_out[k], as_c, af_c, sh, 1.0)
+            major[k] = _branch(t_br[k], as_c, af_c, sh, 1.0)
         elif dirs[k] < 0:
-            major[k] = _branch(temp_out[k], mf_c, ms_c, sc, -1.0)
+            major[k] = _branch(t_br[k], mf_c, ms_c, sc, -1.0)
     xi = xi_eq = xi_r = xi_out[0] = XI_START
     ref = 1.0  # the major branch unscaled until the first reversal
     direction = 0
@@ -370,7 +408,7 @@ def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv,
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
-            ref = _reversal_ref(xi_r, dn, temp_out[k], as_c, af_c, sh, mf_c, ms_c, sc)
+            ref = _reversal_ref(xi_r, dn, t_rev[k], as_c, af_c, sh, mf_c, ms_c, sc)
         xi, xi_eq = _xi_step(dn, major[k + 1], ref, xi_r, xi, xi_eq, memory,
                              bh, c1h, c0h, bc, c1c, c0c)  # fmt: skip
         xi_out[k + 1] = xi

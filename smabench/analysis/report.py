@@ -127,6 +127,7 @@ def summary(an: Analysis) -> dict:
         "gain": 1.0 - ext / base if base > 0 else 0.0,
         "parameters": ext_params,
         "baseline_parameters": base_params,
+        "kinetics": v.get("kinetics"),
         "candidates": cands,
         "skipped_candidates": an.prob.skipped,
         "test": {

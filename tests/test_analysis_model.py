@@ -267,3 +267,17 @@ def test_still_errors_keep_only_where_the_transformation_is_still():
     still = np.r_[np.ones(15) * 0.3, np.zeros(5)]  # ξ = 1 (15 samples), then ξ = 0 (5)
     np.testing.assert_allclose(ea, [np.sqrt(np.mean(still**2))])
     np.testing.assert_allclose(eb, [0.1])
+
+
+def test_structure_allows_for_the_switching_instants():
+    """Held-out units at twice the noise/stroke floor are structure; not where the current's
+    switching instants, known to one sample, alone account for errors that size; and one unit
+    in five above its floor is not structure either."""
+    from smabench.analysis.core import structure
+
+    units = np.full(16, 0.02)
+    assert structure(units, 0.02, 0.01)["structured"]
+    st = structure(units, 0.02, 0.01, np.full(16, 0.02))
+    assert not st["structured"] and st["floor_mm"] == pytest.approx(math.hypot(0.01, 0.02))
+    few = np.where(np.arange(16) < 3, 0.05, 0.005)
+    assert not structure(few, float(np.sqrt(np.mean(few**2))), 0.01)["structured"]

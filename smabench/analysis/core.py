@@ -18,8 +18,11 @@ Protocol (see ``docs/analysis-flexinol.md`` for a worked example):
    into blocks when there are fewer than 16) the RMSE of the baseline and of each extension; a
    one-sided paired test across the units (Wilcoxon signed-rank and a log-ratio t-test,
    Bonferroni) and a minimum gain decide whether an extension removes structure. ``none`` when
-   none does and the baseline is within its noise/accuracy floor, ``unexplained`` when structure
-   remains that no candidate removes, or when the best two candidates cannot be told apart.
+   none does and the baseline is within its floor (noise, accuracy, and what the current's
+   switching instants, known to a sample, alone would cost: :func:`structure`), or when the
+   wire's own rate-dependent kinetics bring it there (:data:`RATE_KINETICS`); ``unexplained``
+   when structure remains that no candidate removes, or when the best two candidates cannot be
+   told apart.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
@@ -86,6 +89,12 @@ noise and FLOOR_STROKE × the stroke (half the paper's loop-model accuracy of ab
 STRUCTURED_QUANTILE = 75.0
 """The baseline leaves structure when its pooled held-out RMSE and this percentile of its
 per-unit RMSEs both exceed the floor."""
+SWITCH_RMS = 1.0 / math.sqrt(3.0)
+"""The recorded current changes at a sample; the wire's current changed at some instant of the
+sample interval before it. The model takes the late end: with the instant uniform over the
+interval, its error is u·D (u uniform on 0…1, D the change of the prediction when every switch
+moves one sample earlier), whose RMS is D/√3. Sharp transformations make D large (seen: 0.3 mm
+at the onsets of the third simulator's Tanaka kinetics sampled at 50 Hz)."""
 TIE_NOISE = 1.25
 """A held-out unit where two models both stay below this × the sensor noise is a tie."""
 FIT_DT_MIN = 0.05
@@ -881,6 +890,27 @@ def unit_gain(base: np.ndarray, ext: np.ndarray, tie_mm: float = 0.0) -> float:
     return float(1.0 - np.median(ext[keep] / base[keep]))
 
 
+def structure(units: np.ndarray, pooled: float, floor: float,
+              switch_units: np.ndarray | None = None) -> dict:  # fmt: skip
+    """Whether a model's held-out errors leave structure: its pooled RMSE above the floor and
+    STRUCTURED_QUANTILE of its units above theirs (on most units, not in one: a part-way
+    reversal that any model misses would otherwise make a clean session "unexplained" on its
+    own). With ``switch_units`` (per-unit RMS error from the switching instants alone,
+    :func:`switch_errors`) each unit's floor is √(floor² + that²), the pooled one likewise."""
+    units = np.asarray(units, float)
+    sw = np.zeros(len(units)) if switch_units is None else np.asarray(switch_units, float)
+    unit_floor = np.hypot(floor, sw)
+    pooled_floor = float(np.hypot(floor, np.sqrt(np.mean(sw**2)))) if len(sw) else floor
+    ratio = float(np.percentile(units / unit_floor, STRUCTURED_QUANTILE)) if len(units) else 0.0
+    structured = bool(pooled > pooled_floor and ratio > 1.0)
+    sw_rms = float(np.sqrt(np.mean(sw**2))) if len(sw) else 0.0
+    text = (f"held-out RMSE {pooled:.4g} mm vs floor {pooled_floor:.4g} mm ({floor:.4g} mm of "
+            f"noise/stroke, {sw_rms:.2g} mm from the switching instants); "
+            f"{STRUCTURED_QUANTILE:.0f} % of the units below {ratio:.2f} × their floor")
+    return {"structured": structured, "floor_mm": pooled_floor, "unit_ratio": ratio,
+            "text": text}  # fmt: skip
+
+
 def verdict(
     base_units: np.ndarray,
     cand_units: dict[str, np.ndarray],
@@ -890,6 +920,7 @@ def verdict(
     stroke_mm: float,
     ruled_out: dict[str, str] | None = None,
     cooling: np.ndarray | None = None,
+    switch_units: np.ndarray | None = None,
 ) -> dict:
     """Name the cause (or ``none`` / ``unexplained``) from per-unit held-out RMSEs.
 
@@ -911,10 +942,8 @@ def verdict(
             rows[c]["ruled_out"] = ruled_out[c]
     order = sorted(rows, key=lambda c: -rows[c]["unit_gain"])
     floor = max(FLOOR_NOISE * noise_mm, FLOOR_STROKE * stroke_mm)
-    # structure left: on most units, not in one (a part-way reversal both models miss would
-    # otherwise make a clean session "unexplained" on its own)
-    tail = float(np.percentile(base_units, STRUCTURED_QUANTILE)) if len(base_units) else base_rmse
-    structured = bool(base_rmse > floor and tail > floor)
+    st = structure(base_units, base_rmse, floor, switch_units)
+    structured = st["structured"]
     sig = [c for c in order if rows[c]["significant"]]
     runner = None
     reason = ""
@@ -923,9 +952,7 @@ def verdict(
         runner = order[0] if order else None
         reason = (
             f"no extension cuts the held-out error significantly (α = {ALPHA}, typical gain ≥ "
-            f"{MIN_GAIN:.0%}); baseline held-out RMSE {base_rmse:.4g} mm "
-            f"({STRUCTURED_QUANTILE:.0f} % of the units below {tail:.4g} mm) vs floor "
-            f"{floor:.4g} mm"
+            f"{MIN_GAIN:.0%}); baseline {st['text']}"
         )
         barred = [c for c in order if rows[c].get("ruled_out") and rows[c]["p_value"] < ALPHA
                   and rows[c]["unit_gain"] >= MIN_GAIN]  # fmt: skip
@@ -973,6 +1000,7 @@ def verdict(
         "reason": reason,
         "structured": structured,
         "floor_mm": floor,
+        "switch_floor_mm": st["floor_mm"],
         "rows": rows,
     }
 
@@ -1176,6 +1204,7 @@ def analyse(
                 unit_rmse["baseline"], {c: unit_rmse[c] for c in prob.candidates},
                 rmse["baseline"], {c: rmse[c] for c in prob.candidates}, noise, stroke,
                 ruled_out, cooling,
+                switch_errors(prob, folds, fits["baseline"], preds["baseline"], units),
             )  # fmt: skip
 
         v = decide()
@@ -1188,7 +1217,8 @@ def analyse(
         if (v["cause"] == "unexplained" and v["structured"] and "current" in
                 {s.kind for s in prob.sessions}
                 and not any(r["significant"] for r in v["rows"].values())):  # fmt: skip
-            _rate_kinetics(prob, folds, fits, v, run_all, report, evaluate, unit_rmse, rmse)
+            _rate_kinetics(prob, folds, fits, v, run_all, report, evaluate, unit_rmse, rmse,
+                           preds, units)  # fmt: skip
         v["causes"] = []
         if v["cause"] in REGISTRY:
             v["causes"] = _more_causes(prob, folds, fits, v, run_all, report, evaluate,
@@ -1259,13 +1289,32 @@ def _rival_tasks(prob: Problem, folds: list[Fold], fits: dict) -> list[tuple]:
     return tasks
 
 
+def switch_errors(prob: Problem, folds: list[Fold], fits: list[FitResult], preds: dict,
+                  units: list) -> np.ndarray:  # fmt: skip
+    """Per held-out unit, the RMS error of a model's prediction (``preds``, from ``fits``) that
+    the switching instants of the current alone would cause (:data:`SWITCH_RMS`): the
+    prediction again with every change of the current one sample earlier. 0 for thermometer
+    loops."""
+    early = {}
+    for s in prob.sessions:
+        g, idx = prob.full_grids[s.name]
+        if g.kind == "current":
+            early[s.name] = (replace(g, i2=np.append(g.i2[1:], g.i2[-1])), idx)
+    if not early:
+        return np.zeros(len(units))
+    moved = _predictions(replace(prob, full_grids={**prob.full_grids, **early}), folds, fits)
+    return np.array([SWITCH_RMS * _rmse(preds[name].position_mm[ii] - moved[name].position_mm[ii])
+                     for name, _fi, ii in units])  # fmt: skip
+
+
 RATE_STARTS = (0.3, 0.8, 1.5)
 """Starts of ``rate_shift_k``, K/√(K/s), from the baseline's fit (one start stalled at a
 quarter of the value on a third-simulator session)."""
 
 
 def _rate_kinetics(prob: Problem, folds: list[Fold], fits: dict, v: dict, run_all, report,
-                   evaluate, unit_rmse: dict, rmse: dict) -> None:  # fmt: skip
+                   evaluate, unit_rmse: dict, rmse: dict, preds: dict,
+                   units: list) -> None:  # fmt: skip
     """Fit :data:`RATE_KINETICS` in every fold (from the baseline's fit), and make the verdict
     ``none`` when its held-out error is within the floor, with the reason and the fitted shift
     in ``v["kinetics"]``; ``v`` changed in place."""
@@ -1283,16 +1332,17 @@ def _rate_kinetics(prob: Problem, folds: list[Fold], fits: dict, v: dict, run_al
     _consensus(prob, folds, RATE_KINETICS, fits, run_all, report)
     evaluate(RATE_KINETICS)
     pooled = rmse[RATE_KINETICS]
-    tail = float(np.percentile(unit_rmse[RATE_KINETICS], STRUCTURED_QUANTILE))
+    st = structure(unit_rmse[RATE_KINETICS], pooled, v["floor_mm"],
+                   switch_errors(prob, folds, fits[RATE_KINETICS], preds[RATE_KINETICS], units))
     shift = [f.values["rate_shift_k"] for f in fits[RATE_KINETICS]]
-    within = bool(not (pooled > v["floor_mm"] and tail > v["floor_mm"])
+    within = bool(not st["structured"]
                   and max(shift) > OFF_TOL * PARAMS["rate_shift_k"].scale)  # fmt: skip
     v["kinetics"] = {"model": RATE_KINETICS, "rate_shift_k": float(np.mean(shift)),
                      "rate_shift_k_per_fold": shift, "heldout_rmse_mm": pooled,
-                     "tail_mm": tail, "within_floor": within}  # fmt: skip
-    said = (f"transformation temperatures that move with the rate (rate_shift_k = "
-            f"{np.mean(shift):.2g} K/√(K/s)) leave {pooled:.4g} mm ({STRUCTURED_QUANTILE:.0f} % "
-            f"of the units below {tail:.4g} mm)")
+                     "floor_mm": st["floor_mm"], "unit_ratio": st["unit_ratio"],
+                     "within_floor": within}  # fmt: skip
+    said = (f"with transformation temperatures that move with the rate (rate_shift_k = "
+            f"{np.mean(shift):.2g} K/√(K/s)): {st['text']}")
     if within:
         v["cause"] = "none"
         v["reason"] += (f"; {said}, within the floor: the structure is the wire's "

@@ -242,19 +242,25 @@ def _branch(t: float, lo: float, hi: float, shape: float, sign: float) -> float:
     return v if sign > 0 else 1.0 - v
 
 
+XI_MOVED = 1e-3
+"""A branch has started (its rate shift is held from there) once it has moved this much."""
+
+
 @numba.njit(inline="always", error_model="numpy")
-def _rate_shift(dn, new, d, shift_k, frozen, as_c, ms_c):
-    """(shift, frozen) of one step: the branch is read at T - shift. Before the branch starts
-    (T - shift below As on heating, above Ms on cooling) the shift follows the rate,
-    ``shift_k``·√|ΔT| (K per √K of one step's change); from there it stays at its value then:
-    once nucleated, the transformation follows the temperature whatever the rate does.
-    ``frozen`` < 0: not started (reset at every reversal)."""
+def _rate_shift(dn, new, d, shift_k, frozen, as_c, af_c, sh, mf_c, ms_c, sc):
+    """(shift, frozen) of one step: the branch is read at T - shift. Until the branch has
+    started (moved by XI_MOVED: nucleated) the shift follows the rate, ``shift_k``·√|ΔT| (K per
+    √K of one step's change); from there it stays at its value then: once nucleated, the
+    transformation follows the temperature whatever the rate does. ``frozen`` < 0: not started
+    (reset at every reversal)."""
     if shift_k == 0.0 or dn == 0:
         return 0.0, frozen
     if frozen >= 0.0:
         return dn * frozen, frozen
     s = shift_k * math.sqrt(abs(d))
-    if (dn > 0 and new - s >= as_c) or (dn < 0 and new + s <= ms_c):
+    m = (_branch(new - s, as_c, af_c, sh, 1.0) if dn > 0
+         else _branch(new + s, mf_c, ms_c, sc, -1.0))  # fmt: skip
+    if m < 1.0 - XI_MOVED:
         frozen = s
     return dn * s, frozen
 
@@ -330,7 +336,7 @@ def _wire_kernel(thermo, temp_in, heat_k, amb, rate, beta, lat, conv, shift_k,
         dn = 1 if d > _EPS_T else (-1 if d < -_EPS_T else direction)
         if dn != direction:
             frozen = -1.0
-        shift, frozen = _rate_shift(dn, new, d, shift_k, frozen, as_c, ms_c)
+        shift, frozen = _rate_shift(dn, new, d, shift_k, frozen, as_c, af_c, sh, mf_c, ms_c, sc)
         if dn != direction:  # a reversal: the scaled branch starts here
             xi_r = xi_eq
             direction = dn
@@ -390,7 +396,8 @@ def _wire_kernel_uncoupled(thermo, temp_in, heat_k, amb, rate, beta, lat, conv, 
             frozen = -1.0
         direction = dn
         dirs[k + 1] = direction
-        shift, frozen = _rate_shift(direction, new, d, shift_k, frozen, as_c, ms_c)
+        shift, frozen = _rate_shift(direction, new, d, shift_k, frozen, as_c, af_c, sh,
+                                    mf_c, ms_c, sc)
         t_rev[k] = temp - shift
         t_br[k + 1] = new - shift
         temp = new

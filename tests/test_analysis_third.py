@@ -112,3 +112,19 @@ def test_no_effect_is_none_when_the_wires_rate_dependent_kinetics_explain_it(tmp
     assert doc["test"]["structured_baseline"] and kin["within_floor"]
     kappa = ts.World.draw(np.random.default_rng(5)).kappa
     assert kin["rate_shift_k"] == pytest.approx(kappa, rel=0.25)
+
+
+def test_a_cause_hidden_under_the_wires_kinetics_is_named_on_top_of_them(tmp_path):
+    """Convection ∝ ΔT^1.25 where the baseline's miss of the nucleation delay dilutes every
+    candidate's gain (sweep draw 8539: `unexplained` before): no candidate passes over the
+    baseline, the rate-dependent kinetics leave structure, and on top of them convection
+    passes the same test, so it is named, over ``rate_kinetics``."""
+    lo, hi = CASES["convection_nonlinear"][:2]
+    value = float(np.random.default_rng(8539).uniform(lo, hi))
+    doc = analyse(tmp_path, {"convection_nonlinear": value}, [170.0], seed=8539)
+    print(doc["reason"])
+    assert doc["cause"] == "convection_nonlinear", doc["reason"]
+    assert [c["cause"] for c in doc["causes"]] == ["convection_nonlinear"]
+    assert doc["causes"][0]["over"] == "rate_kinetics"
+    assert not doc["kinetics"]["within_floor"]
+    assert not doc["candidates"]["convection_nonlinear"]["significant"]  # not over the baseline

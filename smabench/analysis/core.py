@@ -1278,7 +1278,10 @@ def _candidate_fits(prob: Problem, folds: list[Fold], order: list[str], fits: di
 
 def _rival_tasks(prob: Problem, folds: list[Fold], fits: dict) -> list[tuple]:
     """Fits of KINETIC_RIVAL per fold, from the baseline's fit with: no dead time of ξ, equal
-    lags on both branches, and the sensor fit's delay as a delay of the transformation."""
+    lags on both branches, and the sensor fit's delay as a delay of the transformation; and
+    from where the sensor fit ended, its delay moved into ξ (the rival gets the sensor's
+    chance: from the baseline's start one fold of a no-effect session stalled at 1.6 × the
+    sensor's training error, and the sensor was named)."""
     names = _spec(prob, KINETIC_RIVAL)[0]
     tasks = []
     for fi, fold in enumerate(folds):
@@ -1287,8 +1290,11 @@ def _rival_tasks(prob: Problem, folds: list[Fold], fits: dict) -> list[tuple]:
         x_eq[names.index("heat_lag_ratio")] = 1.0  # equal lags on both branches
         x_dt = x.copy()  # the sensor fit's delay, as a delay of the transformation
         lag = fits["sensor_lag"][fi].values
-        x_dt[-1] = lag.get("lag_s", 0.0) + lag.get("delay_s", 0.0)
-        tasks.append((fold, KINETIC_RIVAL, None, None, [x, x_eq, x_dt]))
+        delay = lag.get("lag_s", 0.0) + lag.get("delay_s", 0.0)
+        x_dt[-1] = delay
+        x_s = np.array([lag.get(n, PARAMS[n].start) for n in names])
+        x_s[-1] = delay
+        tasks.append((fold, KINETIC_RIVAL, None, None, [x, x_eq, x_dt, x_s]))
     return tasks
 
 

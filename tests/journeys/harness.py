@@ -34,7 +34,7 @@ INSTALL_TIMEOUT_S = 900.0
 COMMAND_TIMEOUT_S = 300.0
 
 
-def _source_files(repo: Path) -> list[Path]:
+def source_files(repo: Path) -> list[Path]:
     """The files a clone of the checkout has (tracked, plus new files not ignored)."""
     try:
         out = subprocess.run(
@@ -51,7 +51,7 @@ def install(venv: Path, work: Path) -> None:
     """``pip install`` a clean copy of the checkout into a fresh venv at ``venv``."""
     src = work / "src"
     shutil.rmtree(src, ignore_errors=True)
-    for rel in _source_files(REPO):
+    for rel in source_files(REPO):
         dest = src / rel
         dest.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(REPO / rel, dest)

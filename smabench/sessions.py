@@ -58,17 +58,19 @@ SCHEMA_VERSION = 2
 
 # ``flags`` column: one integer per sample. Bits 0-7 are the displacement sensor's own flags
 # (timeout, exception, link lost, framing, status, retried: smabench.drivers.displacement
-# FLAG_*), copied as the sensor reported them; bits 8-11 are the bench runtime's.
+# FLAG_*), copied as the sensor reported them; bits 8-12 are the bench runtime's.
 SENSOR_FLAGS_MASK = 0x00FF
 FLAG_SENSOR_INVALID = 1 << 8  # the sample's position is invalid (no value fed to the controller)
 FLAG_TELEMETRY_STALE = 1 << 9  # the current driver's telemetry was older than the link timeout
 FLAG_DEADLINE_MISSED = 1 << 10  # the loop tick came late
 FLAG_INTERLOCK = 1 << 11  # an interlock tripped on this sample (the session ends)
+FLAG_AFTER_END = 1 << 12  # recorded after the session ended, until the driver showed 0 A
 RUNTIME_FLAG_NAMES: dict[int, str] = {
     FLAG_SENSOR_INVALID: "sensor_invalid",
     FLAG_TELEMETRY_STALE: "telemetry_stale",
     FLAG_DEADLINE_MISSED: "deadline_missed",
     FLAG_INTERLOCK: "interlock",
+    FLAG_AFTER_END: "after_end",
 }
 FLAG_NAMES: dict[int, str] = {**SENSOR_FLAG_NAMES, **RUNTIME_FLAG_NAMES}
 """Every bit of the ``flags`` column and its name."""
@@ -106,6 +108,7 @@ TEXT_COLUMNS = frozenset({"mode"})
 SAMPLES_FILE = "samples.csv"
 META_FILE = "session.json"
 CYCLES_FILE = "cycles.csv"
+EVENTS_FILE = "events.jsonl"  # the safety chain's events, one JSON object a line (EventLog)
 CHUNK_ROWS = 1_000_000
 """Rows per samples chunk file before the writer rotates (≈ 80 MB, 83 min at 200 Hz)."""
 _CHUNK_RE = re.compile(r"^samples-(\d{5})\.csv$")
@@ -870,3 +873,51 @@ def load_session_meta_check(path: str | Path) -> dict[str, Any]:
             f"(columns: {', '.join(header)})"
         )
     return meta
+
+
+class EventLog:
+    """``events.jsonl`` of a session: one JSON object a line, appended, flushed and synced at
+    once (a handful of lines a session; each must survive the process dying right after it).
+
+    Each line has ``event`` (what happened), ``t_host_s`` (``time.monotonic()``, s: one clock
+    for every process on the host, so the GUI's input events and the runtime's frames compare)
+    and ``wall`` (ISO 8601 with the UTC offset), then the event's own fields (``t_device_ms``:
+    the current driver's clock, ms since its reset). Thread-safe."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.path = Path(folder) / EVENTS_FILE
+        self._lock = threading.Lock()
+
+    def write(self, event: str, t_host_s: float | None = None, **fields: Any) -> dict[str, Any]:
+        """Append one event (``t_host_s`` defaults to now); returns what was written. An
+        unwritable file is logged, never raised: the safety path must not stop on it."""
+        finite = {k: None if isinstance(v, float) and not math.isfinite(v) else v
+                  for k, v in fields.items()}  # fmt: skip
+        line = {"event": event, "t_host_s": time.monotonic() if t_host_s is None else t_host_s,
+                "wall": time.strftime("%Y-%m-%dT%H:%M:%S%z"), **finite}  # fmt: skip
+        text = json.dumps(line, allow_nan=False, default=str) + "\n"
+        with self._lock:
+            try:
+                with open(self.path, "a", encoding="utf-8") as fh:
+                    fh.write(text)
+                    fh.flush()
+                    os.fsync(fh.fileno())
+            except OSError as exc:
+                log.error("%s: event %s not written: %s", self.path, event, exc)
+        return line
+
+
+def read_events(folder: str | Path) -> list[dict[str, Any]]:
+    """The events of a session folder in the order written ([] when it has none)."""
+    path = Path(folder) / EVENTS_FILE
+    if not path.exists():
+        return []
+    out = []
+    for k, text in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not text.strip():
+            continue
+        try:
+            out.append(json.loads(text))
+        except json.JSONDecodeError as exc:
+            raise SessionError(f"{path}:{k}: not a JSON event line: {exc}") from None
+    return out

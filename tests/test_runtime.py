@@ -27,11 +27,14 @@ from smabench.drivers.sim import SimBench
 from smabench.physics.plant import simulate_plant
 from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import (
+    FLAG_AFTER_END,
     FLAG_DEADLINE_MISSED,
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
+    EventLog,
     SessionWriter,
     load_session,
+    read_events,
 )
 
 PERIOD_S = 0.005  # 200 Hz, the bench's default loop
@@ -63,7 +66,9 @@ class Observing(Constant):
 
 def session(command, bench: SimBench | None = None, at=None, **cfg):
     """Run one session on the simulated bench; ``at = {tick: fn(runtime, bench)}`` injects
-    events before those ticks. Returns (result, rows, bench)."""
+    events before those ticks. Returns (result, rows, bench): the rows of the session itself;
+    those recorded after its end (``after_end``, until the driver showed the output off) are
+    ``bench.after_end_rows``."""
     bench = bench or SimBench(2.0, seed=1)
     rows: list[dict] = []
     cfg.setdefault("rate_hz", 1.0 / PERIOD_S)
@@ -79,7 +84,12 @@ def session(command, bench: SimBench | None = None, at=None, **cfg):
         on_tick=on_tick, clock=bench.clock.now, sleep=bench.clock.sleep,
     )  # fmt: skip
     rt_box.append(rt)
-    return rt.run(), rows, bench
+    result = rt.run()
+    after = [(int(r["flags"]) & FLAG_AFTER_END) != 0 for r in rows]
+    assert after == sorted(after), "after-end rows come only after the session's own"
+    bench.after_end_rows = [r for r, a in zip(rows, after, strict=True) if a]
+    assert result.samples == len(rows)
+    return result, [r for r, a in zip(rows, after, strict=True) if not a], bench
 
 
 def col(rows, name):
@@ -464,3 +474,64 @@ def test_realtime_thread_puts_the_scheduling_back(monkeypatch):
     with priority.realtime_thread() as raised:
         assert raised is False
     assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}
+
+
+# ----------------------------------------------------------------------------- the record proves it
+def events_session(tmp_path, command, at, **cfg):
+    """:func:`session` with an event log in ``tmp_path``; returns (result, rows, bench, events)."""
+    log = EventLog(tmp_path)
+    bench = SimBench(2.0, seed=1)
+    rows: list[dict] = []
+    box: list[BenchRuntime] = []
+    cfg.setdefault("max_duration_s", 30.0)
+    rt = BenchRuntime(
+        bench.source, bench.sensor, command, rows.append, RuntimeConfig(**cfg),
+        on_tick=lambda k, t: at[k](box[0], bench) if k in at else None,
+        clock=bench.clock.now, sleep=bench.clock.sleep, events=log,
+    )  # fmt: skip
+    box.append(rt)
+    result = rt.run()
+    return result, rows, bench, read_events(tmp_path)
+
+
+def test_an_estopped_session_records_until_the_current_is_off_and_logs_the_chain(tmp_path):
+    result, rows, bench, events = events_session(
+        tmp_path, Constant(1.4), {300: lambda rt, b: rt.estop(123.25, "key Esc")}
+    )
+    assert result.status == "aborted" and result.reason == "e-stop"
+    after = [r for r in rows if int(r["flags"]) & FLAG_AFTER_END]
+    assert 1 <= len(after) <= 20, len(after)  # frames every 10 ms: off within a few
+    assert abs(after[-1]["current_A"]) < 0.02 and after[-1]["current_set_A"] == 0.0
+    live = [r for r in rows if not int(r["flags"]) & FLAG_AFTER_END]
+    assert live[-1]["current_A"] == pytest.approx(1.4, abs=0.05)  # the e-stop came mid-heating
+    assert [e["event"] for e in events] == [
+        "estop_input", "command_sent", "session_end", "command_sent", "output_off_frame",
+        "current_below_threshold",
+    ]  # fmt: skip
+    first = events[0]
+    assert first["t_host_s"] == 123.25 and first["source"] == "key Esc"
+    assert first["from_input_event"] is True
+    assert events[1]["command"] == "ENABLE 0" and events[1]["why"] == "e-stop"
+    assert events[2]["reason"] == "e-stop"
+    assert events[-1]["current_a"] < 0.02 and events[-1]["threshold_a"] == 0.02
+    assert events[-1]["t_device_ms"] >= events[-2]["t_device_ms"]
+
+
+def test_a_lost_driver_is_recorded_as_not_confirmed_with_the_reason(tmp_path):
+    result, rows, bench, events = events_session(
+        tmp_path, Constant(0.8), {100: lambda rt, b: b.source.stall_telemetry()}
+    )
+    assert result.status == "aborted" and "telemetry lost" in result.reason
+    names = [e["event"] for e in events]
+    assert names[-1] == "output_off_not_confirmed", names
+    assert "device is lost" in events[-1]["reason"]
+    assert events[-1]["waited_s"] == pytest.approx(1.0, abs=0.02)
+    after = [r for r in rows if int(r["flags"]) & FLAG_AFTER_END]
+    assert len(after) == pytest.approx(200, abs=3)  # 1 s at 200 Hz, recorded as it was
+
+
+def test_a_completed_session_ends_without_after_end_rows(tmp_path):
+    result, rows, bench, events = events_session(tmp_path, Constant(0.5, duration_s=1.0), {})
+    assert result.status == "completed"
+    assert not [r for r in rows if int(r["flags"]) & FLAG_AFTER_END]
+    assert [e["event"] for e in events] == ["session_end", "command_sent"]

@@ -20,7 +20,9 @@ Out (stdout), one line each:
 - ``E <json>``: a session ended (status, reason, samples, folder);
 - ``Q <json>``: the process is closing.
 In (stdin): ``start <settings json>`` (the settings of :mod:`smabench.settings` in its JSON
-shape, see ``values_from_mapping``), ``estop``, ``stop``, ``pause``, ``resume``, ``mode NAME``,
+shape, see ``values_from_mapping``), ``estop [INPUT_T [SOURCE]]`` (the input event's own
+``time.monotonic()`` and what it was, for the session's event log), ``stop``, ``pause``,
+``resume``, ``mode NAME``,
 ``gains KP KI KD [LAW]`` (LAW: ``pid``, ``ffpid`` or ``ffpid_hold``), ``open_current A`` (the
 current held when switched to open loop), ``quit``. ``estop`` is obeyed on the reading thread at
 once, whatever another command is doing. EOF on stdin (the GUI died) e-stops and closes everything.
@@ -240,9 +242,12 @@ class BenchServer:
         ready.wait(5.0)
         self.emit.line("S", {"started": str(settings.folder())})
 
-    def estop(self) -> None:
+    def estop(self, input_t: float | None = None, source: str = "") -> None:
         """Output off now: through the running session's runtime (which then ends it as
-        aborted) or straight to the driver when idle; then report what the telemetry shows."""
+        aborted, keeps recording until the current is off and logs the chain in the session's
+        ``events.jsonl``) or straight to the driver when idle; then report what the telemetry
+        shows. ``input_t``: the operator's input event's own time (``time.monotonic()``, s);
+        ``source``: what it was (``key Esc``, ``button``…)."""
         received_t = time.monotonic()
         self._estops += 1
         frames: dict[str, Any] = {}
@@ -260,15 +265,15 @@ class BenchServer:
         unsubscribe = self.source.subscribe(watch)
         rt = self.runtime if self.running else None
         if rt is not None:
-            rt.estop()
+            rt.estop(input_t, source)
         else:
             self.source.make_safe()
 
         def report() -> None:
             done.wait(1.0)
             unsubscribe()
-            self.emit.line("X", {"received_t": received_t, "confirmed": "output_off_t" in frames,
-                                 **frames})  # fmt: skip
+            self.emit.line("X", {"received_t": received_t, "input_t": input_t,
+                                 "confirmed": "output_off_t" in frames, **frames})  # fmt: skip
 
         threading.Thread(target=report, name="estop-report", daemon=True).start()
 
@@ -285,7 +290,7 @@ class BenchServer:
             if cmd == "start":
                 self.start_session(json.loads(rest))
             elif cmd == "estop":
-                self.estop()
+                self.estop(*parse_estop(rest))
             elif cmd == "stop" and rt is not None:
                 rt.stop()
             elif cmd in ("pause", "resume") and rt is not None:
@@ -381,6 +386,19 @@ class BenchServer:
                 dev.close()
         if self.mock is not None:
             self.mock.close()
+
+
+def parse_estop(rest: str) -> tuple[float | None, str]:
+    """``estop [INPUT_T [SOURCE…]]``'s arguments: the input event's ``time.monotonic()``
+    (s; absent or not a finite number: None) and its source words."""
+    words = rest.split(maxsplit=1)
+    try:
+        input_t = float(words[0]) if words else None
+    except ValueError:
+        return None, rest.strip()
+    if input_t is not None and not math.isfinite(input_t):
+        input_t = None
+    return input_t, words[1].strip() if len(words) > 1 else ""
 
 
 def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:

@@ -14,11 +14,20 @@ the offline closed loop (:mod:`smabench.bench.offline`), which thus runs this ve
 Safety: e-stop and stop are obeyed at the next tick (the e-stop also turns the driver's output
 off at once, from the caller's thread); whatever ends the session — a tick's end status, an
 interlock, or any exception — makes both devices safe, with the reason recorded.
+
+The record proves it: a session that did not complete keeps recording (rows flagged
+``after_end``, 0 A commanded) until the driver's telemetry shows the output off and the current
+below :data:`OFF_CURRENT_A`, or says within :data:`OFF_CONFIRM_S` why it could not; the session's
+event log (:class:`smabench.sessions.EventLog`, ``events.jsonl``) gets the chain: the e-stop's
+input event (its own timestamp, from the GUI or the signal), the command sent, the session's end,
+the output-off frame and the current below the threshold, on the host's monotonic clock and the
+driver's own (``t_device_ms``).
 """
 
 from __future__ import annotations
 
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -30,14 +39,21 @@ from smabench.bench.tick import ControlTick, RuntimeConfig
 from smabench.commands import CommandSource
 from smabench.control.controller import MODES, Controller
 from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
+from smabench.drivers.protocol import Flag
 from smabench.sessions import (
     FLAG_DEADLINE_MISSED,
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
+    EventLog,
 )
 
 log = logging.getLogger(__name__)
+
+OFF_CURRENT_A = 0.02
+"""Below this measured current the wire is safe: the end of the record's safety chain, A."""
+OFF_CONFIRM_S = 1.0
+"""How long the runtime keeps recording after an end for the driver to show the output off, s."""
 
 __all__ = [
     "FLAG_DEADLINE_MISSED",
@@ -67,7 +83,8 @@ class BenchRuntime:
     :class:`~smabench.drivers.base.DisplacementDevice`); ``command``: a protocol or a controller;
     ``record``: takes one row dict (the session writer's ``append``); ``on_sample(row)`` after
     each recorded row; ``on_tick(k, t_s)`` before tick ``k`` (device time ``t_s``);
-    ``clock`` / ``sleep``: the clock the loop is scheduled on, s.
+    ``clock`` / ``sleep``: the clock the loop is scheduled on, s; ``events``: the session's
+    event log (none: nothing logged, the after-end rows are still recorded).
     """
 
     def __init__(
@@ -83,6 +100,7 @@ class BenchRuntime:
         on_tick: Callable[[int, float], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
         sleep: Callable[[float], None] = time.sleep,
+        events: EventLog | None = None,
     ) -> None:
         self.source, self.sensor, self.command = source, sensor, command
         self.record = record
@@ -93,6 +111,7 @@ class BenchRuntime:
         self.on_sample = on_sample
         self.on_tick = on_tick
         self.clock, self.sleep = clock, sleep
+        self.events = events
         self._estop = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -135,16 +154,38 @@ class BenchRuntime:
             raise ValueError("this session has no PID controller")
         self.command.set_gains(kp, ki, kd, law=law)
 
-    def estop(self) -> None:
+    def estop(self, input_t_s: float | None = None, source: str = "") -> None:
         """Emergency stop: the current driver's output off now (from any thread: the driver
         client is thread-safe), the session ends as aborted and the loop then makes both
         devices safe. The sensor is passive and its client belongs to the loop thread, so it is
-        not touched from here."""
+        not touched from here.
+
+        ``input_t_s``: when the operator's input happened (``time.monotonic()``, s, from the
+        input event itself: a key press, a click, a signal), logged as the chain's first event;
+        ``source``: what it was (e.g. ``key Esc``)."""
+        first = not self._estop.is_set()
         self._estop.set()
+        if self.events is not None and first:
+            self.events.write(
+                "estop_input", t_host_s=time.monotonic() if input_t_s is None else input_t_s,
+                source=source or "unknown", from_input_event=input_t_s is not None,
+            )  # fmt: skip
+        self._make_source_safe("e-stop")
+
+    def _make_source_safe(self, why: str) -> bool:
+        """ENABLE 0 to the driver (never raises), logged as ``command_sent``."""
+        t_sent = time.monotonic()
         try:
-            self.source.make_safe()
+            acked = bool(self.source.make_safe())
         except Exception:  # make_safe must never stop the e-stop
             log.exception("make_safe failed on %r", self.source)
+            acked = False
+        if self.events is not None:
+            self.events.write(
+                "command_sent", t_host_s=t_sent, command="ENABLE 0", why=why, acked=acked,
+                t_ack_host_s=time.monotonic() if acked else None,
+            )  # fmt: skip
+        return acked
 
     def stop(self) -> None:
         """Ask the loop to finish after the current tick (devices made safe)."""
@@ -161,12 +202,60 @@ class BenchRuntime:
         return self.result
 
     # ------------------------------------------------------------------ loop
-    def _safe_all(self) -> None:
-        for dev in (self.source, self.sensor):
-            try:
-                dev.make_safe()
-            except Exception:  # make_safe must never stop the other device's make_safe
-                log.exception("make_safe failed on %r", dev)
+    def _sensor_safe(self) -> None:
+        try:
+            self.sensor.make_safe()
+        except Exception:  # make_safe must never stop the session's end
+            log.exception("make_safe failed on %r", self.sensor)
+
+    def _record_until_off(self, t0: float, last_row: dict | None) -> int:
+        """After an end that was not a completion: keep recording (``after_end`` rows) until
+        the driver shows its output off and the current below :data:`OFF_CURRENT_A`, at most
+        :data:`OFF_CONFIRM_S`; the events say what was seen or why it could not be. Returns
+        the rows recorded."""
+        period_s = 1.0 / self.config.rate_hz
+        mode = (last_row or {}).get("mode") or self.mode
+        cycle = (last_row or {}).get("cycle") or 0
+        start = self.clock()
+        off_frame = False
+        n = 0
+        while True:
+            now = self.clock()
+            tel = self.source.latest()
+            row = self.tick.after_end_row(now - t0, self.sensor.read_or_flag(), tel, mode, cycle)
+            self.record(row)
+            n += 1
+            if self.on_sample is not None:
+                self.on_sample(row)
+            output_off = tel is not None and not tel.flags & Flag.ENABLED
+            if output_off and not off_frame:
+                off_frame = True
+                self._event("output_off_frame", tel.host_time, t_device_ms=tel.t_ms,
+                            current_a=tel.current_a)  # fmt: skip
+            if output_off and abs(tel.current_a) < OFF_CURRENT_A:
+                self._event("current_below_threshold", tel.host_time, t_device_ms=tel.t_ms,
+                            current_a=tel.current_a, threshold_a=OFF_CURRENT_A)  # fmt: skip
+                return n
+            if now - start >= OFF_CONFIRM_S:
+                age_s = self.source.telemetry_age_s()
+                if tel is None or age_s is None or age_s > self.config.link_timeout_s:
+                    why = ("no telemetry from the current driver"
+                           + ("" if age_s is None else f" for {age_s:.2f} s")
+                           + ": the device is lost; its own host timeout and setpoint lease "
+                           "turn the output off")  # fmt: skip
+                elif not output_off:
+                    why = "the current driver still reports its output on"
+                else:
+                    why = (f"the output is off but {tel.current_a:.3f} A still flows "
+                           "(a shorted sink or a wire-to-ground fault?)")  # fmt: skip
+                self._event("output_off_not_confirmed", None, waited_s=now - start, reason=why)
+                log.error("after the session's end: %s", why)
+                return n
+            self.sleep(period_s)
+
+    def _event(self, event: str, t_host_s: float | None, **fields) -> None:
+        if self.events is not None:
+            self.events.write(event, t_host_s=t_host_s, **fields)
 
     def run(self) -> RunResult:
         """Run the session until the tick ends it; devices safe afterwards whatever happens."""
@@ -176,6 +265,7 @@ class BenchRuntime:
         periods: list[float] = []
         missed = n = 0
         status, reason, cause = "aborted", "interrupted", "device"
+        last_row: dict | None = None
         t0 = clock()
         next_tick = t0
         last_tick: float | None = None
@@ -210,6 +300,7 @@ class BenchRuntime:
                     stop=stop,
                 )
                 if out.row is not None:
+                    last_row = out.row
                     self.record(out.row)
                     n += 1
                     if self.on_sample is not None:
@@ -222,7 +313,17 @@ class BenchRuntime:
             log.exception("runtime loop failed")
             status, reason, cause = "aborted", f"{type(exc).__name__}: {exc}", "device"
         finally:
-            self._safe_all()
+            self._event("session_end", None, status=status, reason=reason, cause=cause)
+            self._make_source_safe(f"session end: {reason}")
+            if status == "completed" or sys.exc_info()[0] is not None:
+                self._sensor_safe()  # (an interrupt propagating: no after-end rows)
+        if status != "completed":  # the sensor stays open for the after-end rows
+            try:
+                n += self._record_until_off(t0, last_row)
+            except Exception:  # the session is over and safe: the proof is best effort
+                log.exception("recording after the end failed")
+            finally:
+                self._sensor_safe()
         self.result = RunResult(status, reason, n, np.asarray(periods), missed, cause)
         log.info("session ended: %s (%s), %d samples", status, reason, n)
         return self.result

@@ -19,7 +19,7 @@ from typing import Any
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
 from smabench.physics.wire import PRESETS
 from smabench.protocols import Protocol, ProtocolSettings
-from smabench.sessions import SCHEMA_VERSION, SessionWriter
+from smabench.sessions import SCHEMA_VERSION, EventLog, SessionWriter
 from smabench.settings import (
     SETTINGS,
     SettingError,
@@ -223,8 +223,9 @@ def run_session(
         ),
     )
     runtime = BenchRuntime(
-        source, sensor, command, writer.append, settings.runtime_config(), on_sample=on_sample
-    )
+        source, sensor, command, writer.append, settings.runtime_config(), on_sample=on_sample,
+        events=EventLog(folder),
+    )  # fmt: skip
     result = None
     try:
         if on_start is not None:

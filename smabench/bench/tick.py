@@ -48,6 +48,7 @@ from smabench.physics.thermal import TemperatureEstimator
 from smabench.physics.wire import PAPER_WIRE, Wire
 from smabench.sessions import (
     COLUMNS,
+    FLAG_AFTER_END,
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
@@ -310,3 +311,33 @@ class ControlTick:
             f"broken wire: position jumped {jump_mm:+.3f} mm in {gap_s * 1e3:.0f} ms "
             f"(more than {allowed:.3f} mm: the load fell)"
         )
+
+    def after_end_row(
+        self, clock_s: float, sample: Sample, telemetry: Telemetry | None, mode: str, cycle: int
+    ) -> dict[str, Any]:
+        """A row recorded after the session ended, while its owner waits for the driver to
+        show the output off (flag ``after_end``; the current commanded is 0): what the sensor
+        and the driver report, the temperature estimate going on from the measured current."""
+        cfg = self.config
+        dt_s = (clock_s - (self._last_clock_s if self._last_clock_s is not None else clock_s))
+        self._last_clock_s = clock_s
+        position_mm = float(sample.position_mm)
+        flags = FLAG_AFTER_END | (int(sample.flags) & SENSOR_FLAGS_MASK)
+        if not (math.isfinite(position_mm) and not int(sample.flags) & POSITION_INVALID_BITS):
+            flags |= FLAG_SENSOR_INVALID
+            position_mm = math.nan
+        current_a = telemetry.current_a if telemetry is not None else math.nan
+        voltage_v = telemetry.voltage_v if telemetry is not None else None
+        ambient_c = telemetry.ambient_c if telemetry is not None else cfg.ambient_c
+        temperature_c = self.estimator.update(
+            dt_s * cfg.time_scale, current_a if math.isfinite(current_a) else 0.0, voltage_v,
+            ambient_c,
+        )  # fmt: skip
+        row = dict.fromkeys(COLUMNS)
+        row.update(
+            t_s=clock_s * cfg.time_scale, current_set_A=0.0, current_A=current_a,
+            voltage_V=voltage_v, ambient_C=ambient_c, position_mm=position_mm, setpoint_mm=None,
+            temperature_est_C=temperature_c, mode=mode, cycle=cycle, flags=flags,
+            temperature_C=telemetry.thermocouple_c if telemetry is not None else None,
+        )  # fmt: skip
+        return row

@@ -12,6 +12,7 @@ simulated offline reproduces). Device-side checks read the simulated plant.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -535,3 +536,42 @@ def test_a_completed_session_ends_without_after_end_rows(tmp_path):
     assert result.status == "completed"
     assert not [r for r in rows if int(r["flags"]) & FLAG_AFTER_END]
     assert [e["event"] for e in events] == ["session_end", "command_sent"]
+
+
+class _DiesAfterOff:
+    """A driver that, from ``off_at`` s of simulated time, sends a frame with its output off and
+    no fault (its own shutdown), then goes silent: what a mock process killed under a run does."""
+
+    def __init__(self, source, clock, off_at_s: float) -> None:
+        self._src, self._clock, self.off_at_s = source, clock, off_at_s
+        self._last = None
+
+    def __getattr__(self, name):
+        return getattr(self._src, name)
+
+    def latest(self):
+        now = self._clock.now()
+        if now < self.off_at_s:
+            self._last = self._src.latest()
+        elif now < self.off_at_s + 0.01 and self._last is not None:
+            self._last = dataclasses.replace(self._last, flags=p.Flag(0), host_time=now)
+        return self._last
+
+    def telemetry_age_s(self):
+        return None if self._last is None else self._clock.now() - self._last.host_time
+
+
+def test_a_driver_that_goes_off_with_no_reason_then_silent_is_named_lost(tmp_path):
+    bench = SimBench(2.0, seed=1)
+    source = _DiesAfterOff(bench.source, bench.clock, off_at_s=1.0)
+    rows: list[dict] = []
+    rt = BenchRuntime(
+        source, bench.sensor, Constant(1.0), rows.append, RuntimeConfig(max_duration_s=30.0),
+        clock=bench.clock.now, sleep=bench.clock.sleep, events=EventLog(tmp_path),
+    )  # fmt: skip
+    result = rt.run()
+    assert result.status == "aborted" and result.reason.startswith("current driver lost"), result
+    events = read_events(tmp_path)
+    assert [e["event"] for e in events][-2:] == ["output_off_not_confirmed", "session_end_reason"]
+    live = [r for r in rows if not int(r["flags"]) & FLAG_AFTER_END]
+    assert live[-1]["t_s"] < 1.0 + 0.02  # nothing after the loss looks live

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from smabench.bench.tick import ControlTick, RuntimeConfig
+from smabench.bench.tick import OUTPUT_OFF_UNEXPLAINED, ControlTick, RuntimeConfig
 from smabench.commands import CommandSource
 from smabench.control.controller import MODES, Controller
 from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
@@ -54,6 +54,9 @@ OFF_CURRENT_A = 0.02
 """Below this measured current the wire is safe: the end of the record's safety chain, A."""
 OFF_CONFIRM_S = 1.0
 """How long the runtime keeps recording after an end for the driver to show the output off, s."""
+DRIVER_LOST_AFTER_OFF = (
+    "current driver lost (its output went off with no reason, then its link went silent)"
+)
 
 __all__ = [
     "FLAG_DEADLINE_MISSED",
@@ -208,11 +211,11 @@ class BenchRuntime:
         except Exception:  # make_safe must never stop the session's end
             log.exception("make_safe failed on %r", self.sensor)
 
-    def _record_until_off(self, t0: float, last_row: dict | None) -> int:
+    def _record_until_off(self, t0: float, last_row: dict | None) -> tuple[int, bool]:
         """After an end that was not a completion: keep recording (``after_end`` rows) until
         the driver shows its output off and the current below :data:`OFF_CURRENT_A`, at most
         :data:`OFF_CONFIRM_S`; the events say what was seen or why it could not be. Returns
-        the rows recorded."""
+        the rows recorded and whether the driver was found lost (no telemetry)."""
         period_s = 1.0 / self.config.rate_hz
         mode = (last_row or {}).get("mode") or self.mode
         cycle = (last_row or {}).get("cycle") or 0
@@ -235,10 +238,11 @@ class BenchRuntime:
             if output_off and abs(tel.current_a) < OFF_CURRENT_A:
                 self._event("current_below_threshold", tel.host_time, t_device_ms=tel.t_ms,
                             current_a=tel.current_a, threshold_a=OFF_CURRENT_A)  # fmt: skip
-                return n
+                return n, False
             if now - start >= OFF_CONFIRM_S:
                 age_s = self.source.telemetry_age_s()
-                if tel is None or age_s is None or age_s > self.config.link_timeout_s:
+                lost = tel is None or age_s is None or age_s > self.config.link_timeout_s
+                if lost:
                     why = ("no telemetry from the current driver"
                            + ("" if age_s is None else f" for {age_s:.2f} s")
                            + ": the device is lost; its own host timeout and setpoint lease "
@@ -250,7 +254,7 @@ class BenchRuntime:
                            "(a shorted sink or a wire-to-ground fault?)")  # fmt: skip
                 self._event("output_off_not_confirmed", None, waited_s=now - start, reason=why)
                 log.error("after the session's end: %s", why)
-                return n
+                return n, lost
             self.sleep(period_s)
 
     def _event(self, event: str, t_host_s: float | None, **fields) -> None:
@@ -319,7 +323,13 @@ class BenchRuntime:
                 self._sensor_safe()  # (an interrupt propagating: no after-end rows)
         if status != "completed":  # the sensor stays open for the after-end rows
             try:
-                n += self._record_until_off(t0, last_row)
+                rows, lost = self._record_until_off(t0, last_row)
+                n += rows
+                if lost and reason == OUTPUT_OFF_UNEXPLAINED:
+                    # a driver that dies may send a last frame with its output off and no
+                    # reason (its own shutdown) before it goes silent: it was lost, not tripped
+                    reason = DRIVER_LOST_AFTER_OFF
+                    self._event("session_end_reason", None, reason=reason)
             except Exception:  # the session is over and safe: the proof is best effort
                 log.exception("recording after the end failed")
             finally:

@@ -65,6 +65,10 @@ contraction at the driver's 2.5 A hard limit under 1–4 kg runs at 20–23 mm/s
 (0.37–0.42 /s); cooling runs at ≈ 2 mm/s. The broken-wire check allows this much motion over
 the time between two valid samples on top of ``max_jump_mm``."""
 
+OUTPUT_OFF_UNEXPLAINED = "current driver output turned off by the device"
+"""The end reason when the driver's output went off with no fault it names (the runtime renames
+it a lost driver when the link then goes silent)."""
+
 CAUSES = ("completed", "operator", "interlock", "device")
 """Why a session ended: the source finished; e-stop or stop; an interlock (current,
 temperature, position, broken wire, maximum duration: running again would trip it again or is
@@ -215,9 +219,7 @@ class ControlTick:
             if not starting:  # the device turned its output off: a fault, an event, e-stop
                 return self._end(
                     "aborted",
-                    f"current driver fault: {fault}"
-                    if fault
-                    else "current driver output turned off by the device",
+                    f"current driver fault: {fault}" if fault else OUTPUT_OFF_UNEXPLAINED,
                     "device",
                 )
             # a frame from before the session's ENABLE: its events (a host timeout while the

@@ -23,7 +23,7 @@ from gui_support import (  # noqa: E402
     ensure_connected,
     fresh_window,
     run_until_completed,
-    start_until_running,
+    start_running,
 )
 from PySide6 import QtCore, QtGui, QtWidgets  # noqa: E402
 from PySide6.QtTest import QTest  # noqa: E402
@@ -74,11 +74,9 @@ def wait_end(qtbot, w: MainWindow, timeout_ms: int = 40000) -> dict:
 
 
 def start_heating(qtbot, w: MainWindow) -> None:
-    """A long heating cycle, running with the output on (the driver measures > 0.5 A).
-
-    Link trouble before the state under test: see :func:`gui_support.start_until_running`."""
+    """A long heating cycle, running with the output on (the driver measures > 0.5 A)."""
     short_cycles(qtbot, w, cycles=3, heat_s=60.0)
-    start_until_running(
+    start_running(
         qtbot, w, lambda: qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
     )
 

@@ -103,13 +103,24 @@ class _Emitter:
         self.out = out
         self.rows: queue.SimpleQueue[dict | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
+        self.gone = False  # the reader closed its end
         self._thread = threading.Thread(target=self._run, name="emit", daemon=True)
         self._thread.start()
 
     def line(self, kind: str, payload: Any) -> None:
+        self._write(f"{kind} {json.dumps(payload)}\n")
+
+    def _write(self, text: str) -> None:
+        """Write and flush; once the reader is gone (the GUI closed its end: EPIPE) every
+        later line is dropped quietly: the process is closing anyway."""
         with self._lock:
-            self.out.write(f"{kind} {json.dumps(payload)}\n")
-            self.out.flush()
+            if self.gone:
+                return
+            try:
+                self.out.write(text)
+                self.out.flush()
+            except (BrokenPipeError, OSError, ValueError):
+                self.gone = True
 
     def _run(self) -> None:
         done = False
@@ -126,9 +137,7 @@ class _Emitter:
                     break
                 batch.append("R " + format_row(row))
             if batch:
-                with self._lock:
-                    self.out.write("\n".join(batch) + "\n")
-                    self.out.flush()
+                self._write("\n".join(batch) + "\n")
 
     def flush_rows(self) -> None:
         """Wait until the rows queued so far are written (before an end line)."""
@@ -149,10 +158,12 @@ class BenchServer:
         self.emit = emit
         self.mock: MockProcess | None = None
         if "mock" in devices_cfg:
+            self._connecting("starting the mock bench")
             self.mock = MockProcess(list(devices_cfg["mock"]))
             self.port, self.spec = self.mock.ports.driver, self.mock.ports.sensor_tcp
         else:
             self.port, self.spec = devices_cfg["port"], devices_cfg["sensor"]
+        self._connecting("opening the current driver and the displacement sensor")
         # devices are opened with permissive settings; each session checks its own
         probe = RunSettings(load_kg=1.0, time_scale=float(devices_cfg.get("time_scale", 1.0)))
         self.source, self.sensor = open_devices(
@@ -171,6 +182,11 @@ class BenchServer:
         self._estops = 0  # e-stops so far: a start in flight when one arrives is e-stopped too
         self._idle_lock = threading.Lock()  # the sensor is read while idle only under this lock
         self._starting = False
+
+    def _connecting(self, step: str) -> None:
+        """Tell the GUI what connecting is doing now (``S {"connecting": …}``)."""
+        if self.emit is not None:
+            self.emit.line("S", {"connecting": step})
 
     @property
     def running(self) -> bool:
@@ -226,7 +242,8 @@ class BenchServer:
                     {"port": self.port, "sensor": self.spec, "device": self.info},
                     on_sample=on_sample, command=command, on_start=on_start,
                 )  # fmt: skip
-                end = {"status": result.status, "reason": result.reason,
+                reason = self._lost_reason(result, folder)
+                end = {"status": result.status, "reason": reason,
                        "samples": result.samples, "folder": str(folder)}  # fmt: skip
             except Exception as exc:  # the session could not run: say why, keep serving
                 log.exception("session failed")
@@ -239,6 +256,32 @@ class BenchServer:
         self._session.start()
         ready.wait(5.0)
         self.emit.line("S", {"started": str(settings.folder())})
+
+    def _lost_reason(self, result: Any, folder: Any) -> str:
+        """The session's end reason, named a lost driver when it is one: a driver that went
+        silent may be seen first as an output turned off (its host timeout) rather than as
+        stale telemetry; when its link is down within the link timeout after the end, the
+        reason (and the saved session.json) says the driver was lost."""
+        reason = result.reason
+        if result.status != "aborted" or "output turned off by the device" not in reason:
+            return reason
+        deadline = time.monotonic() + 2 * float(getattr(self.source, "link_timeout_s", 0.3))
+        while self.source.link_ok and time.monotonic() < deadline:
+            time.sleep(0.02)
+        if self.source.link_ok:
+            return reason
+        reason = "current driver lost (its link went silent; the output turned itself off)"
+        try:
+            from pathlib import Path
+
+            from smabench.sessions import META_FILE, write_meta
+
+            meta = json.loads((Path(folder) / META_FILE).read_text(encoding="utf-8"))
+            meta["end_reason"] = reason
+            write_meta(folder, meta)
+        except Exception:  # the end is reported whatever the file says
+            log.exception("could not name the lost driver in %s", folder)
+        return reason
 
     def estop(self) -> None:
         """Output off now: through the running session's runtime (which then ends it as

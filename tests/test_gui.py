@@ -243,7 +243,9 @@ def test_state_machine_latches_the_estop_and_refuses_what_a_state_does_not_allow
     ("SerialException: could not open port /dev/ttyUSB0: [Errno 2] No such file or directory: "
      "'/dev/ttyUSB0'", "serial port cannot be opened"),
     ("interlock: commanded current 2.100 A outside 0 … 2.0 A", "Stopped by the current limit"),
-    ("load must be in (0, 10] kg, got -5 kg (load_kg)", "Load must be in (0, 10] kg, got -5 kg."),
+    ("load must be in (0, 10] kg, got -5 kg (load_kg)",
+     "Load must be more than 0, up to 10 kg, got -5 kg."),
+    ("cycles must be in 1 … 10000, got 0", "Cycles must be 1 to 10000, got 0."),
     ('start: JSONDecodeError: Expecting value {"a": 1}', "Expecting value."),
 ])  # fmt: skip
 def test_messages_are_plain_words(raw, want):

@@ -284,9 +284,12 @@ def _inside(win, w) -> bool:
 
 def test_run_controls_are_never_clipped_and_screenshots(qtbot, win, tmp_path):
     win.mock_speed.set_value(FAST_MOCK_SPEED)  # the run's cycles in a fifth of the time
-    cycles(qtbot, win, n=2, heat_s=3.0, cool_s=4.0)  # a finished run in the plots
+    cycles(qtbot, win, n=5, heat_s=3.0, cool_s=4.0)  # a finished run in the plots
     end = run_until_completed(qtbot, win, lambda: click(qtbot, win.start_button))
     assert end is not None and end["status"] == "completed", (end, win.message.text())
+    win.open_session(end["folder"])  # its replay (and its trends) for the screenshots
+    qtbot.waitUntil(lambda: win.replay.folder == Path(end["folder"]), timeout=20000)
+    win.tabs.setCurrentIndex(0)
     for width, height in SIZES:
         win.resize(width, height)
         qtbot.waitUntil(lambda w=width, h=height: win.size() == QtCore.QSize(w, h), timeout=5000)
@@ -304,6 +307,16 @@ def test_run_controls_are_never_clipped_and_screenshots(qtbot, win, tmp_path):
         shots = DOCS if os.environ.get("SMABENCH_DOCS_SCREENSHOTS") == "1" else tmp_path
         shots.mkdir(exist_ok=True)
         assert win.grab().save(str(shots / f"gui-{width}x{height}.png"))
+        for tab, name in ((win.replay, "replay"), (win.trend_plots, "trends")):
+            win.tabs.setCurrentWidget(tab)
+            for _ in range(3):  # laid out, then drawn (the trends redraw on a frame)
+                QtWidgets.QApplication.processEvents()
+                win.on_frame()
+            if tab is win.replay:  # the whole session in view at this size
+                t0, t1 = win.replay.time_plots.p_current.viewRange()[0]
+                assert t1 - t0 >= 0.95 * float(end["samples"]) * 0.005, (t0, t1)
+            assert win.grab().save(str(shots / f"gui-{width}x{height}-{name}.png"))
+        win.tabs.setCurrentIndex(0)
     # the latched E-STOP banner is in reach too
     win.estop()
     QtWidgets.QApplication.processEvents()
@@ -353,7 +366,7 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     type_into(qtbot, f["load_kg"], "-5")
     click(qtbot, win.start_button)
     assert f["load_kg"].text() == "-5" and win.state == State.DISCONNECTED
-    assert "load" in win.message.text() and "(0, 10]" in win.message.text()
+    assert "load" in win.message.text().lower() and "more than 0, up to 10 kg" in win.message.text()
     type_into(qtbot, f["protocol.cycles"], "50000")
     assert f["protocol.cycles"].text() == "50000" and "10000" in f["protocol.cycles"].error()
     type_into(qtbot, f["protocol.cycles"], "1")

@@ -53,10 +53,11 @@ class WindowLayout:
         self.settings_tabs.setMinimumWidth(360)
         self.loop_plot = LoopPlot()
         self.time_plots = TimePlots()
-        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        # side by side: the three stacked time plots get the tab's whole height
+        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
         live.addWidget(self.loop_plot)
         live.addWidget(self.time_plots)
-        live.setSizes([450, 450])
+        live.setSizes([400, 600])
         self.replay = ReplayView()
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(live, "Live")

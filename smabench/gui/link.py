@@ -192,6 +192,11 @@ class RuntimeLink:
         self._reader.start()
 
     def _read(self) -> None:
+        with contextlib.suppress(ValueError, OSError):  # our end closed (the window closing)
+            self._read_lines()
+        self.events.put(("Q", {"reason": f"runtime process exited ({self.proc.wait()})"}))
+
+    def _read_lines(self) -> None:
         for line in self.proc.stdout:
             kind, _, rest = line.rstrip("\n").partition(" ")
             if kind == "R":
@@ -204,11 +209,14 @@ class RuntimeLink:
                 log.warning("runtime printed %r", line)
                 continue
             self.events.put((kind, payload))
-        self.events.put(("Q", {"reason": f"runtime process exited ({self.proc.wait()})"}))
 
     def _read_stderr(self) -> None:
         """The runtime's warnings and errors into this process's log (never lost, never on the
         operator's terminal as a stray traceback)."""
+        with contextlib.suppress(ValueError, OSError):
+            self._read_stderr_lines()
+
+    def _read_stderr_lines(self) -> None:
         for line in self.proc.stderr:
             line = line.rstrip("\n")
             self.stderr_lines.append(line)

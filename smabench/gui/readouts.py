@@ -49,12 +49,17 @@ class Readouts:
         self.t_s = now_s
         self.law = law
 
-    def freeze(self, why: str, now_s: float, gone: bool = False) -> None:
+    def freeze(self, why: str, now_s: float, gone: bool = False,
+               temperature_c: float | None = None) -> None:  # fmt: skip
         """An E-STOP, a trip or a loss: the values stay only as stale (or are cleared when
-        ``gone``); the wire temperature keeps cooling from its last estimate."""
+        ``gone``); the wire temperature keeps cooling from its last estimate
+        (``temperature_c``: the newest streamed estimate, °C, fresher than the last status)."""
+        ambient = self.values.get("ambient_c") or 22.0
+        if temperature_c is not None and math.isfinite(temperature_c) and self.mode == FRESH:
+            self._cool_from = (now_s, float(temperature_c), ambient)
         t = self.values.get("temperature_c")
         if self._cool_from is None and t is not None and self.t_s is not None:
-            self._cool_from = (self.t_s, t, self.values.get("ambient_c") or 22.0)
+            self._cool_from = (self.t_s, t, ambient)
         self.mode = GONE if gone else STALE
         self.why = why
         self.law = ""

@@ -131,16 +131,17 @@ class ReplayView(QtWidgets.QWidget):
         self.title.setStyleSheet("font-weight: bold; padding: 4px; background: #e8eef7;")
         self.title.setWordWrap(True)
         v.addWidget(self.title)
-        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)  # as the Live tab
         self.loop_plot = LoopPlot()
         self.time_plots = TimePlots()
         self.time_plots.follow = False
         split.addWidget(self.loop_plot)
         split.addWidget(self.time_plots)
+        split.setSizes([400, 600])
         v.addWidget(split, 1)
         self.fit_text = QtWidgets.QPlainTextEdit()
         self.fit_text.setReadOnly(True)
-        self.fit_text.setMaximumHeight(110)
+        self.fit_text.setMaximumHeight(80)
         v.addWidget(self.fit_text)
         self.buffer = SampleBuffer()
         self.folder: Path | None = None

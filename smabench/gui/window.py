@@ -450,7 +450,12 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.last_estop = None
         self._close_dialogs()
         self.fire("estop")
-        self.readouts.freeze("E-STOP", time.monotonic(), gone=link is None)
+        self.readouts.freeze("E-STOP", time.monotonic(), gone=link is None,
+                             temperature_c=self._newest("temperature_est_C"))
+        if self.session_folder is not None or self._plan_s is not None:
+            elapsed = self.times.text().split("   remaining")[0]
+            self.times.setText(f"{elapsed}   stopped by the E-STOP")
+        self._plan_s = None
         if sent:
             text = ("E-STOP: output off command sent to the driver; waiting for its "
                     "confirmation …")  # fmt: skip
@@ -800,10 +805,19 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             pass  # the latched E-STOP's message and banner stay
         else:
             if status == "aborted":  # a trip: the numbers before it are history
-                self.readouts.freeze("stopped", time.monotonic())
+                self.readouts.freeze("stopped", time.monotonic(),
+                                     temperature_c=self._newest("temperature_est_C"))
             self.fire("ended")
             self.say(f"{head}{saved}", error=status != "completed")
         self.session_ended.emit(end)
+
+    def _newest(self, column: str) -> float | None:
+        """The newest finite value of a streamed column (None when there is none)."""
+        if not self.buffer.n:
+            return None
+        v = self.buffer.column(column)[-50:]
+        v = v[np.isfinite(v)]
+        return float(v[-1]) if v.size else None
 
     def _not_live_after_loss(self, reason: str) -> None:
         """Rows recorded after the driver went silent carry its last frame (the current it
@@ -832,7 +846,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.status = {}
         self.pending_start = None
         self._plan_s = None
-        self.readouts.freeze("device lost", time.monotonic(), gone=True)
+        self.readouts.freeze("device lost", time.monotonic(), gone=True,
+                             temperature_c=self._newest("temperature_est_C"))
         self.times.setText("elapsed –   remaining –   device lost")
         self.fire("lost")
         if self.state != State.ESTOPPED:

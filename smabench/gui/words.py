@@ -69,7 +69,7 @@ RULES: list[_Rule] = [
           f"{float(m.group(1)):.0f} °C, the limit is {float(m.group(2)):.0f} °C."),
     _rule(r"interlock: position ([-\d.]+) mm outside ([-\w.]+) … ([-\w.]+) mm",
           lambda m: f"Stopped by the position limits: the wire reached {float(m.group(1)):.3f} mm,"
-          f" outside {m.group(2)} … {m.group(3)} mm."),
+          f" outside {m.group(2)} to {m.group(3)} mm."),
     _rule(r"current driver fault: (.*)",
           lambda m: f"The current driver reported a fault: {_clean(m.group(1))}."),
     _rule(r"maximum duration ([\d.]+) s reached",
@@ -81,8 +81,29 @@ RULES: list[_Rule] = [
 ]
 
 
+_NUM = r"-?\d+(?:\.\d+)?(?:e-?\d+)?"
+_INTERVAL = re.compile(rf"([\[(])({_NUM}), ({_NUM})([\])])")
+_SPAN = re.compile(rf"({_NUM}) … ({_NUM})")
+
+
+def ranges_in_words(text: str) -> str:
+    """Ranges written as intervals ("(0, 10]") or spans ("0 … 2.5") in a library's or the
+    runtime's sentence, in :func:`range_words`' notation ("more than 0, up to 10", "0 to
+    2.5")."""
+
+    def interval(m: re.Match[str]) -> str:
+        lo = f"more than {m.group(2)}," if m.group(1) == "(" else m.group(2)
+        hi = f"less than {m.group(3)}" if m.group(4) == ")" else m.group(3)
+        return f"{lo} {'up to' if m.group(1) == '(' else 'to'} {hi}"
+
+    text = _INTERVAL.sub(interval, text)
+    text = _SPAN.sub(lambda m: f"{m.group(1)} to {m.group(2)}", text)
+    return re.sub(r"must be in (?=\S)", "must be ", text)
+
+
 def _clean(text: str) -> str:
     """Drop command echoes, exception class names, JSON, option hints and errno prefixes."""
+    text = ranges_in_words(text)
     text = re.sub(r"^\w+:\s+(?=[A-Z]\w*(Error|Exception|Timeout)\b)", "", text)  # "start: "
     text = re.sub(r"\b[A-Z]\w*(Error|Exception|Timeout):\s*", "", text)
     text = re.sub(r"\{.*\}", "", text, flags=re.DOTALL)

@@ -284,7 +284,7 @@ def _inside(win, w) -> bool:
 
 def test_run_controls_are_never_clipped_and_screenshots(qtbot, win, tmp_path):
     win.mock_speed.set_value(FAST_MOCK_SPEED)  # the run's cycles in a fifth of the time
-    cycles(qtbot, win, n=5, heat_s=3.0, cool_s=4.0)  # a finished run in the plots
+    cycles(qtbot, win, n=4, heat_s=3.0, cool_s=8.0)  # a finished run in the plots
     end = run_until_completed(qtbot, win, lambda: click(qtbot, win.start_button))
     assert end is not None and end["status"] == "completed", (end, win.message.text())
     win.open_session(end["folder"])  # its replay (and its trends) for the screenshots

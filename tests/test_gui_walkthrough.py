@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import time
 from pathlib import Path
@@ -393,6 +394,8 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert "position –" not in win.readout.text()
     # 6. a run: fields that cannot change mid-run are disabled; remaining time frozen in pause
     cycles(qtbot, win, n=2, heat_s=3.0, cool_s=4.0)
+    shown_times: list[str] = []
+    win.timer.timeout.connect(lambda: shown_times.append(win.times.text()))
     start_running(qtbot, win, lambda: click(qtbot, win.start_button))
     assert not f["load_kg"].isEnabled() and not f["protocol.cycles"].isEnabled()
     assert not win.protocol.isEnabled() and not f["current_limit_a"].isEnabled()
@@ -415,6 +418,12 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     end = wait_end(qtbot, win)
     assert end["status"] == "completed", end
     assert win.state == State.IDLE and f["load_kg"].isEnabled()
+    # the remaining time only goes down (it rose 27 → 33 s in 3 s when it was extrapolated
+    # from the finished cycles), and it was there from cycle 1 on
+    remaining = [float(m.group(1)) for t in shown_times
+                 if (m := re.search(r"remaining (\d+) s", t))]  # fmt: skip
+    assert remaining and max(np.diff(remaining), default=0.0) <= 1.0, remaining
+    assert any("cycle 1 of 2" in t and "remaining –" not in t for t in shown_times)
     assert end["folder"] in win.message.text()  # the end message names the saved folder
     # cycles counted the same way: the run showed "cycle k of 2"; the record has 2 cycles
     from smabench.sessions import load_session

@@ -355,3 +355,28 @@ def test_quitting_is_clean(qtbot, tmp_path):
     assert link.proc.poll() is not None
     assert not [x for x in link.stderr_lines if "Traceback" in x or "Error" in x], \
         link.stderr_lines  # fmt: skip
+
+
+def test_the_runtime_names_a_silent_driver_lost_in_the_end_and_the_saved_session(tmp_path):
+    """A driver whose link went silent may first show up as 'output turned off by the device'
+    (seen at load 13): the runtime's end report and session.json then say it was lost; a
+    driver that turned its output off while still answering keeps that reason."""
+    from types import SimpleNamespace
+
+    from smabench.bench.remote import BenchServer
+    from smabench.sessions import write_meta
+
+    folder = tmp_path / "s"
+    folder.mkdir()
+    write_meta(folder, {"status": "aborted", "end_reason": "x"})
+    server = BenchServer.__new__(BenchServer)
+    off = SimpleNamespace(status="aborted", reason="current driver output turned off by the "
+                          "device")  # fmt: skip
+    server.source = SimpleNamespace(link_ok=False, link_timeout_s=0.3)
+    reason = server._lost_reason(off, folder)
+    assert "lost" in reason
+    assert json.loads((folder / "session.json").read_text())["end_reason"] == reason
+    server.source = SimpleNamespace(link_ok=True, link_timeout_s=0.05)
+    assert server._lost_reason(off, folder) == off.reason
+    done = SimpleNamespace(status="completed", reason="protocol completed")
+    assert server._lost_reason(done, folder) == "protocol completed"

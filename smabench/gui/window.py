@@ -417,6 +417,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         protocol = settings.get("protocol") or {}
         self._plan_s = None if "controller" in settings else planned_cycles_s(protocol)
         self.remembered.save()  # what was started is what the next start of the window shows
+        self.readouts.wire_preset = str(self._v("wire_preset"))
         self._fresh_session = True
         self.link.start(settings)
         self.say("Starting …")

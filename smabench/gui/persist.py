@@ -29,8 +29,9 @@ def store() -> QtCore.QSettings:
 class Remembered:
     """Saves and restores a :class:`~smabench.gui.window.MainWindow`'s entries."""
 
-    def __init__(self, win: Any) -> None:
+    def __init__(self, win: Any, enabled: bool = True) -> None:
         self.win = win
+        self.enabled = enabled  # False: neither read nor written (benchmarks, scripts)
 
     def _widgets(self) -> dict[str, QtWidgets.QWidget]:
         w = self.win
@@ -41,6 +42,8 @@ class Remembered:
                 "sensor_baud": w.sensor_baud, "sensor_map": w.sensor_map}  # fmt: skip
 
     def save(self) -> None:
+        if not self.enabled:
+            return
         w = self.win
         q = store()
         q.setValue("version", 1)
@@ -54,6 +57,8 @@ class Remembered:
 
     def restore(self) -> None:
         """The remembered entries (nothing when there are none: the schema's defaults)."""
+        if not self.enabled:
+            return
         w = self.win
         q = store()
         if q.value("version") is None:

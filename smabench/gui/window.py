@@ -71,8 +71,10 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
     session_ended = QtCore.Signal(dict)
     OPEN_LOOP_KEY = OPEN_LOOP_CURRENT.key
 
-    def __init__(self, sessions_dir: str | Path = "sessions",
-                 mock_speed: float | None = 1.0) -> None:  # fmt: skip
+    def __init__(self, sessions_dir: str | Path = "sessions", mock_speed: float | None = 1.0,
+                 remember: bool = True) -> None:  # fmt: skip
+        """``mock_speed``: None keeps the remembered one; ``remember``: False for scripts
+        (benchmarks) that must neither read nor write the operator's remembered entries."""
         super().__init__()
         self.setWindowTitle("smabench")
         self.sessions_dir = Path(sessions_dir)
@@ -117,7 +119,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.on_frame)
         self.timer.start(FRAME_MS)
-        self.remembered = Remembered(self)
+        self.remembered = Remembered(self, enabled=remember)
         self.remembered.restore()
         if mock_speed is not None:  # the caller's (command line, tests) over the remembered
             self.mock_speed.set_value(mock_speed)

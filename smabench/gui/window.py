@@ -451,6 +451,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         link = self.link
         sent = link.estop() if link is not None else False
         self.last_estop = None
+        was_lost = self.state == State.ERROR and self.readouts.why == "device lost"
         self._close_dialogs()
         self.fire("estop")
         self.readouts.freeze("E-STOP", time.monotonic(), gone=link is None,
@@ -464,6 +465,9 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                     "confirmation …")  # fmt: skip
         elif self.state == State.ESTOPPED and link is not None and link.alive:
             text = "E-STOP: the bench is still connecting; nothing was driven."
+        elif was_lost:
+            text = ("E-STOP: the bench was lost, so nothing can be sent; the driver turns its "
+                    "output off by itself when the computer goes quiet. Check the bench.")
         else:
             text = "E-STOP: nothing is connected, so no output was on."
         self.show_banner(True, f"{text}  Press Acknowledge (beside the E-STOP) when it is safe.")

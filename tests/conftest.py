@@ -106,3 +106,18 @@ def bench_win(request, qtbot, shared_bench, tmp_path):
     yield shared_bench.for_test(qtbot, tmp_path / "sessions")
     if last_to_use(request, "bench_win"):
         shared_bench.close()
+
+
+@pytest.fixture(autouse=True)
+def gui_settings_store(request, tmp_path_factory):
+    """GUI tests: the window's remembered entries (QSettings) in a folder of the test's own,
+    never the user's ~/.config, and none left from another test."""
+    if not request.module.__name__.startswith("test_gui"):
+        yield None
+        return
+    from PySide6 import QtCore
+
+    where = tmp_path_factory.mktemp("qsettings")
+    QtCore.QSettings.setPath(QtCore.QSettings.Format.IniFormat,
+                             QtCore.QSettings.Scope.UserScope, str(where))  # fmt: skip
+    yield where

@@ -1,5 +1,5 @@
-"""What the GUI test files share: windows, one bench window for several tests, and starting a
-session until it runs, on a loaded machine."""
+"""What the GUI test files share: windows, one bench window for several tests, starting a
+session (one press of Start, no retry)."""
 
 from __future__ import annotations
 
@@ -14,9 +14,6 @@ from smabench.drivers.mock.bench import REALTIME_MAX_SPEED
 from smabench.gui.app import make_app
 from smabench.gui.state import State
 from smabench.gui.window import MainWindow
-
-LINK_TROUBLE = ("did not answer", "stopped answering")
-"""Words of the GUI's message when the mock bench missed the handshake or its link dropped."""
 
 FAST_MOCK_SPEED = REALTIME_MAX_SPEED
 """Mock bench speed (×) for tests that wait for a session to run its course, not for anything
@@ -163,16 +160,10 @@ def _restore_entries(w: MainWindow, entries: dict[str, object]) -> None:
 
 
 def ensure_connected(qtbot, w) -> None:
-    """Connected and idle: Connect pressed when the window is not (again only after link
-    trouble, at most twice, saying why; see :func:`start_until_running`)."""
-    for _ in range(3):
-        if w.state == State.IDLE:
-            return
+    """Connected and idle: Connect pressed once when the window is not."""
+    if w.state != State.IDLE:
         qtbot.mouseClick(w.connect_button, QtCore.Qt.MouseButton.LeftButton)
         qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR), timeout=60000)
-        if w.state == State.IDLE or not any(t in w.message.text() for t in LINK_TROUBLE):
-            break
-        print(f"\nconnecting again after: {w.message.text()}")
     assert w.state == State.IDLE, (w.state, w.message.text(), w.sm.history[-4:])
 
 
@@ -185,54 +176,31 @@ def measured_current_a(w) -> float:
     return float(max(status, streamed if np.isfinite(streamed) else 0.0))
 
 
-def start_until_running(qtbot, w, press_start: Callable[[], None]) -> None:
-    """Press Start (``press_start``) until the session runs with the output on (the driver
-    measures > 0.5 A): at most three presses, again only after link trouble, saying why.
-
-    On a loaded machine the mock bench may miss the handshake (seen at load average 12 on two
-    cores) or its link may drop (the kernel's tty worker that carries the pty's bytes waited
-    0.2–0.8 s for a CPU, past the driver's 0.25 s host timeout: the output turns itself off, as
-    it must). Neither is the state under test: an operator presses Start again, so does this."""
-    for attempt in range(3):
-        w.last_end = None
-        press_start()
-        # running, or stopped trying (refused, or the connection failed)
-        qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
-            w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
-        if w.state == State.RUNNING:
-            qtbot.waitUntil(lambda: measured_current_a(w) > 0.5 or w.state != State.RUNNING,
-                            timeout=30000)  # fmt: skip
-            if w.state == State.RUNNING:
-                return
-        if attempt == 2 or not any(t in w.message.text() for t in LINK_TROUBLE):
-            break
-        print(f"\nstarting again after: {w.message.text()}")
-        qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR, State.DISCONNECTED),
-                        timeout=15000)  # fmt: skip
-    raise AssertionError((w.state, w.message.text(), w.last_end, w.sm.history[-4:]))
+def start_running(qtbot, w, press_start: Callable[[], None]) -> None:
+    """Press Start once (``press_start``); the session must run with the output on (the
+    driver measures > 0.5 A). No second press: a session that does not start is a failure,
+    with the window's state, message and last transitions."""
+    w.last_end = None
+    press_start()
+    qtbot.waitUntil(lambda: w.state in (State.RUNNING, State.ERROR) or w.last_end or (
+        w.state == State.IDLE and "Not started" in w.message.text()), timeout=60000)
+    if w.state == State.RUNNING:
+        qtbot.waitUntil(lambda: measured_current_a(w) > 0.5 or w.state != State.RUNNING,
+                        timeout=30000)  # fmt: skip
+    assert w.state == State.RUNNING, (w.state, w.message.text(), w.last_end, w.sm.history[-4:])
 
 
 def run_until_completed(qtbot, w, press_start: Callable[[], None],
                         timeout_ms: int = 60000) -> dict | None:  # fmt: skip
-    """Press Start (``press_start``) and wait for the session's end; returns its end report
-    (None when it did not start). When it ended on link trouble, or the mock bench missed the
-    handshake (see :func:`start_until_running`; the GUI then says so and offers Connect), Start
-    is pressed again, at most twice, saying why. Any other end is returned as it is."""
-    for attempt in range(3):
-        w.last_end = None
-        press_start()
-        qtbot.waitUntil(lambda: w.last_end is not None or w.state in (
-            State.ERROR, State.DISCONNECTED) or (
-            w.state == State.IDLE and "Not started" in w.message.text()),
-            timeout=timeout_ms)  # fmt: skip
-        end = w.last_end
-        if (end is not None and end.get("status") == "completed") or attempt == 2 or not any(
-                t in w.message.text() for t in LINK_TROUBLE):  # fmt: skip
-            return end
-        print(f"\nstarting again after: {w.message.text()}")
-        qtbot.waitUntil(lambda: w.state in (State.IDLE, State.ERROR, State.DISCONNECTED),
-                        timeout=15000)  # fmt: skip
-    return end
+    """Press Start once (``press_start``) and wait for the session's end; returns its end
+    report (None when it did not start)."""
+    w.last_end = None
+    press_start()
+    qtbot.waitUntil(lambda: w.last_end is not None or w.state in (
+        State.ERROR, State.DISCONNECTED) or (
+        w.state == State.IDLE and "Not started" in w.message.text()),
+        timeout=timeout_ms)  # fmt: skip
+    return w.last_end
 
 
 def last_to_use(request, fixture: str) -> bool:

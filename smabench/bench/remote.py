@@ -105,13 +105,24 @@ class _Emitter:
         self.out = out
         self.rows: queue.SimpleQueue[dict | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
+        self.gone = False  # the reader closed its end
         self._thread = threading.Thread(target=self._run, name="emit", daemon=True)
         self._thread.start()
 
     def line(self, kind: str, payload: Any) -> None:
+        self._write(f"{kind} {json.dumps(payload)}\n")
+
+    def _write(self, text: str) -> None:
+        """Write and flush; once the reader is gone (the GUI closed its end: EPIPE) every
+        later line is dropped quietly: the process is closing anyway."""
         with self._lock:
-            self.out.write(f"{kind} {json.dumps(payload)}\n")
-            self.out.flush()
+            if self.gone:
+                return
+            try:
+                self.out.write(text)
+                self.out.flush()
+            except (BrokenPipeError, OSError, ValueError):
+                self.gone = True
 
     def _run(self) -> None:
         done = False
@@ -128,9 +139,7 @@ class _Emitter:
                     break
                 batch.append("R " + format_row(row))
             if batch:
-                with self._lock:
-                    self.out.write("\n".join(batch) + "\n")
-                    self.out.flush()
+                self._write("\n".join(batch) + "\n")
 
     def flush_rows(self) -> None:
         """Wait until the rows queued so far are written (before an end line)."""
@@ -151,10 +160,12 @@ class BenchServer:
         self.emit = emit
         self.mock: MockProcess | None = None
         if "mock" in devices_cfg:
+            self._connecting("starting the mock bench")
             self.mock = MockProcess(list(devices_cfg["mock"]))
             self.port, self.spec = self.mock.ports.driver, self.mock.ports.sensor_tcp
         else:
             self.port, self.spec = devices_cfg["port"], devices_cfg["sensor"]
+        self._connecting("opening the current driver and the displacement sensor")
         # devices are opened with permissive settings; each session checks its own
         probe = RunSettings(load_kg=1.0, time_scale=float(devices_cfg.get("time_scale", 1.0)))
         self.source, self.sensor = open_devices(
@@ -173,6 +184,11 @@ class BenchServer:
         self._estops = 0  # e-stops so far: a start in flight when one arrives is e-stopped too
         self._idle_lock = threading.Lock()  # the sensor is read while idle only under this lock
         self._starting = False
+
+    def _connecting(self, step: str) -> None:
+        """Tell the GUI what connecting is doing now (``S {"connecting": …}``)."""
+        if self.emit is not None:
+            self.emit.line("S", {"connecting": step})
 
     @property
     def running(self) -> bool:

@@ -69,7 +69,8 @@ def cmd_gui(args: argparse.Namespace) -> int:
 def add_commands(sub) -> None:
     s = sub.add_parser("gui", help="the operator GUI (PySide6 + pyqtgraph)")
     s.add_argument("--mock", action="store_true", help="connect to the built-in mock bench")
-    s.add_argument("--mock-speed", type=float, default=1.0, help="mock bench speed, × (1)")
+    s.add_argument("--mock-speed", type=float, default=None,
+                   help="mock bench speed, × (the remembered one; 1 the first time)")
     s.add_argument("--port", help="current driver serial port (real devices)")
     s.add_argument("--sessions", default="sessions", help="sessions folder (sessions/)")
     s.add_argument("--run-demo", action="store_true", help="start 3 heating cycles at once")

@@ -126,7 +126,7 @@ def frame_times(n_frames: int = 300, hours: float = 1.0) -> dict:
     n0 = int(hours * 3600 * RATE_HZ)
     block = int(60 * RATE_HZ)  # streamed in one-minute blocks
     with tempfile.TemporaryDirectory() as tmp:
-        win = MainWindow(tmp)
+        win = MainWindow(tmp, remember=False)
         win.timer.stop()  # frames are driven here
         win.show()
         t_load = time.perf_counter()
@@ -223,7 +223,7 @@ def loop_with_gui(duration_s: float, out: Path) -> dict:
     from smabench.gui.window import MainWindow
 
     make_app()
-    win = MainWindow(out)
+    win = MainWindow(out, remember=False)
     win.show()
     win.connect_devices()
     if not win.wait_connected(30.0):

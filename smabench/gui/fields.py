@@ -19,6 +19,7 @@ from typing import Any
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from smabench.gui import words
 from smabench.settings import Setting, SettingError
 
 Qt = QtCore.Qt
@@ -65,7 +66,7 @@ class ValueField(QtWidgets.QLineEdit):
         self.setting = setting
         self.setFocusPolicy(Qt.FocusPolicy.StrongFocus)
         self.setPlaceholderText(setting.none_text if setting.optional else "")
-        self.base_tip = setting.tooltip
+        self.base_tip = words.tooltip(setting)
         self.setToolTip(self.base_tip)
         self.set_value(setting.default)
         self.textChanged.connect(self._check)
@@ -78,13 +79,14 @@ class ValueField(QtWidgets.QLineEdit):
         s = self.setting
         text = self.text().strip()
         if not text and not s.optional:
-            return f"{s.label}: enter a value ({s.range_text})"
+            rng = words.range_words(s)
+            return f"{s.label}: enter a value" + (f" ({rng})" if rng else "")
         if s.kind in ("float", "int") and text and "," in text:
             return f"{s.label}: “{text}” is not a number (use a point: 1.5)"
         try:
             s.check(text if text else None)
         except SettingError as exc:
-            return str(exc)
+            return words.setting_problem(s, exc)
         return ""
 
     def value(self) -> Any:
@@ -117,7 +119,7 @@ class ChoiceField(NoWheelCombo):
             self.addItem(setting.none_text or "none", None)
         for c in setting.choices:
             self.addItem(c, c)
-        self.setToolTip(setting.tooltip)
+        self.setToolTip(words.tooltip(setting))
         self.set_value(setting.default)
         self.currentIndexChanged.connect(lambda *_: self.changed.emit())
 
@@ -139,7 +141,7 @@ class BoolField(QtWidgets.QCheckBox):
     def __init__(self, setting: Setting, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(setting.label, parent)
         self.setting = setting
-        self.setToolTip(setting.tooltip)
+        self.setToolTip(words.tooltip(setting))
         self.setChecked(bool(setting.default))
         self.toggled.connect(lambda *_: self.changed.emit())
 

@@ -42,7 +42,7 @@ def fit_session(folder: Path, model: str, cycle: int | None) -> dict[str, Any]:
     else:
         chosen = float(cycle - 1)
         if finite.size and chosen not in set(finite.tolist()):
-            raise ValueError(f"this session has cycles 1 … {shown_cycle(finite.max())}, "
+            raise ValueError(f"this session has cycles 1 to {shown_cycle(finite.max())}, "
                              f"not {cycle}")  # fmt: skip
     sel = idx == chosen if finite.size else np.ones(idx.size, bool)
     # the temperature the loop plot shows: measured when the session has it, else estimated

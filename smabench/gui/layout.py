@@ -9,6 +9,7 @@ from typing import Any
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from smabench import settings as schema
+from smabench.gui import words
 from smabench.gui.estop import KEY_NAMES
 from smabench.gui.fields import Field, NoWheelCombo, ValueField, label_for, make_field
 from smabench.gui.plots import LoopPlot, TimePlots
@@ -20,6 +21,8 @@ from smabench.settings import GAIN_SETS, PROTOCOL_NAMES, Setting
 
 MODES = (("open_loop", "Open loop"), ("pid", "PID"), ("ff", "FF"), ("ffpid", "FF+PID"))
 MODELS = ("1", "2", "sigmoid", "preisach")
+BANNER_HEIGHT = 40  # px, reserved whether the banner shows or not
+MESSAGE_HEIGHT = 36  # px: two lines
 
 
 class WindowLayout:
@@ -50,10 +53,11 @@ class WindowLayout:
         self.settings_tabs.setMinimumWidth(360)
         self.loop_plot = LoopPlot()
         self.time_plots = TimePlots()
-        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        # side by side: the three stacked time plots get the tab's whole height
+        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
         live.addWidget(self.loop_plot)
         live.addWidget(self.time_plots)
-        live.setSizes([450, 450])
+        live.setSizes([400, 600])
         self.replay = ReplayView()
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(live, "Live")
@@ -61,8 +65,20 @@ class WindowLayout:
         self.tabs.addTab(self.replay, "Replay (recorded)")
         self.trend_plots = TrendPlots()
         self.tabs.addTab(self.trend_plots, "Trends (per cycle)")
+        settings = QtWidgets.QWidget()
+        sv = QtWidgets.QVBoxLayout(settings)
+        sv.setContentsMargins(0, 0, 0, 0)
+        sv.addWidget(self.settings_tabs, 1)
+        self.defaults_button = QtWidgets.QPushButton("Defaults")
+        self.defaults_button.setToolTip("Every setting back to its default (the connection kept; "
+                                        "the entries are remembered between starts)")
+        self.defaults_button.clicked.connect(self.restore_defaults)
+        bottom = QtWidgets.QHBoxLayout()
+        bottom.addStretch(1)
+        bottom.addWidget(self.defaults_button)
+        sv.addLayout(bottom)
         split = QtWidgets.QSplitter()
-        split.addWidget(self.settings_tabs)
+        split.addWidget(settings)
         split.addWidget(self.tabs)
         split.setStretchFactor(1, 1)
         split.setSizes([400, 1000])
@@ -95,6 +111,12 @@ class WindowLayout:
         )
         self.estop_button.pressed.connect(self.estop)  # on press, not on release
         row.addWidget(self.estop_button)
+        # beside the E-STOP at every width: the hand that pressed it finds it there
+        self.ack_button = QtWidgets.QPushButton("Acknowledge\nE-STOP")
+        self.ack_button.setMinimumSize(110, 64)
+        self.ack_button.setToolTip("Release the latched E-STOP once the bench is safe")
+        self.ack_button.clicked.connect(self.acknowledge_estop)
+        row.addWidget(self.ack_button)
         self.state_label = QtWidgets.QLabel()
         self.state_label.setMinimumWidth(150)
         self.state_label.setStyleSheet("font-size: 15px; font-weight: bold;")
@@ -119,28 +141,43 @@ class WindowLayout:
         prog.addWidget(self.times)
         row.addLayout(prog, 1)
         v.addLayout(row)
+        # the banner's place is always there (blank when nothing is latched): nothing below it
+        # moves when it appears
         self.banner = QtWidgets.QFrame()
-        self.banner.setStyleSheet("QFrame { background: #c62828; } QLabel { color: white; "
-                                  "font-size: 15px; font-weight: bold; }")  # fmt: skip
+        self.banner.setObjectName("banner")
         bl = QtWidgets.QHBoxLayout(self.banner)
-        bl.setContentsMargins(8, 4, 8, 4)
+        bl.setContentsMargins(8, 2, 8, 2)
         self.banner_label = QtWidgets.QLabel()
         self.banner_label.setWordWrap(True)
         bl.addWidget(self.banner_label, 1)
-        self.ack_button = QtWidgets.QPushButton("Acknowledge")
-        self.ack_button.setMinimumHeight(32)
-        self.ack_button.clicked.connect(self.acknowledge_estop)
-        bl.addWidget(self.ack_button)
-        self.banner.hide()
+        self.banner.setFixedHeight(BANNER_HEIGHT)
+        self.show_banner(False)
         v.addWidget(self.banner)
+        msgs = QtWidgets.QHBoxLayout()
         self.message = QtWidgets.QLabel("")
         self.message.setWordWrap(True)
+        self.message.setFixedHeight(MESSAGE_HEIGHT)
         self.message.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextSelectableByMouse)
-        v.addWidget(self.message)
+        msgs.addWidget(self.message, 3)
+        # background results (fits, exports, sessions read) announce themselves here, beside
+        # the message line, never in it
+        self.jobs_label = QtWidgets.QLabel("")
+        self.jobs_label.setWordWrap(True)
+        self.jobs_label.setFixedHeight(MESSAGE_HEIGHT)
+        self.jobs_label.setStyleSheet("color: #1a4f8a;")
+        msgs.addWidget(self.jobs_label, 2)
+        v.addLayout(msgs)
         self.readout = QtWidgets.QLabel("readouts: not connected")
         self.readout.setStyleSheet("color: #333;")
         v.addWidget(self.readout)
         return bar
+
+    def show_banner(self, on: bool, text: str = "") -> None:
+        """The latched E-STOP banner in its reserved place (blank when ``on`` is False)."""
+        self.banner_label.setText(text if on else "")
+        self.banner.setStyleSheet(
+            "QFrame#banner { background: %s; } QLabel { color: white; font-size: 14px; "
+            "font-weight: bold; }" % ("#c62828" if on else "transparent"))  # fmt: skip
 
     def _form_panel(self) -> tuple[QtWidgets.QWidget, QtWidgets.QFormLayout]:
         w = QtWidgets.QWidget()
@@ -161,7 +198,7 @@ class WindowLayout:
         self.experiment_form = form
         self.protocol = NoWheelCombo()
         self.protocol.addItems(PROTOCOL_NAMES)
-        self.protocol.setToolTip(schema.get("protocol.name").tooltip)
+        self.protocol.setToolTip(words.tooltip(schema.get("protocol.name")))
         self.protocol.currentTextChanged.connect(self._show_setting_fields)
         for setting in shown("load_wire"):
             self._add_field(form, setting)
@@ -221,8 +258,8 @@ class WindowLayout:
             for key in gs.keys:
                 setting = next(s for s in shown("gains") if s.key == key)
                 fw = self._field(setting)
-                f.addRow(f"{key.rsplit('.', 1)[1]}" + (f" ({setting.unit})" if setting.unit
-                                                        else ""), fw)  # fmt: skip
+                short = setting.label.removeprefix(gs.label).strip()  # the box names the law
+                f.addRow(f"{short} ({setting.unit})" if setting.unit else short, fw)
             apply = QtWidgets.QPushButton("Apply these gains")
             apply.clicked.connect(lambda _=False, law=law: self.apply_gains(law))
             self.gain_apply[law] = apply
@@ -332,8 +369,6 @@ class WindowLayout:
         self.fit_button.clicked.connect(self.fit_selected)
         row.addWidget(self.fit_button)
         v.addLayout(row)
-        self.jobs_label = QtWidgets.QLabel("")
-        v.addWidget(self.jobs_label)
         return w
 
     # ------------------------------------------------------------------ field visibility

@@ -175,9 +175,14 @@ class RuntimeLink:
             [sys.executable, "-m", "smabench.bench.remote", json.dumps(devices)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
             text=True,
             bufsize=1,
         )
+        self.stderr_lines: list[str] = []  # what the runtime wrote on stderr (the last 200)
+        self._stderr = threading.Thread(target=self._read_stderr, name="runtime-stderr",
+                                        daemon=True)  # fmt: skip
+        self._stderr.start()
         self.events: queue.SimpleQueue[tuple[str, Any]] = queue.SimpleQueue()
         self._rows: list[str] = []
         self._lock = threading.Lock()
@@ -187,6 +192,11 @@ class RuntimeLink:
         self._reader.start()
 
     def _read(self) -> None:
+        with contextlib.suppress(ValueError, OSError):  # our end closed (the window closing)
+            self._read_lines()
+        self.events.put(("Q", {"reason": f"runtime process exited ({self.proc.wait()})"}))
+
+    def _read_lines(self) -> None:
         for line in self.proc.stdout:
             kind, _, rest = line.rstrip("\n").partition(" ")
             if kind == "R":
@@ -199,7 +209,19 @@ class RuntimeLink:
                 log.warning("runtime printed %r", line)
                 continue
             self.events.put((kind, payload))
-        self.events.put(("Q", {"reason": f"runtime process exited ({self.proc.wait()})"}))
+
+    def _read_stderr(self) -> None:
+        """The runtime's warnings and errors into this process's log (never lost, never on the
+        operator's terminal as a stray traceback)."""
+        with contextlib.suppress(ValueError, OSError):
+            self._read_stderr_lines()
+
+    def _read_stderr_lines(self) -> None:
+        for line in self.proc.stderr:
+            line = line.rstrip("\n")
+            self.stderr_lines.append(line)
+            del self.stderr_lines[:-200]
+            log.info("runtime: %s", line)
 
     def take_rows(self) -> np.ndarray:
         with self._lock:
@@ -239,7 +261,7 @@ class RuntimeLink:
         except (OSError, ValueError):
             return False
 
-    def close(self, timeout_s: float = 5.0) -> None:
+    def close(self, timeout_s: float = 10.0) -> None:
         if self.alive:
             with contextlib.suppress(OSError, ValueError):
                 self.send("quit")
@@ -249,6 +271,8 @@ class RuntimeLink:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
+        self._reader.join(2.0)
+        self._stderr.join(2.0)
 
 
 def _json_default(obj: Any) -> Any:

@@ -27,6 +27,13 @@ BRIGHT = (230, 90, 30)
 FADED = (120, 140, 180, 90)
 
 
+def add_legend(plot) -> pg.LegendItem:
+    """A legend that stays readable in a small plot: small type, entries side by side, a
+    translucent box in the top-right corner."""
+    return plot.addLegend(offset=(-5, 2), labelTextSize="8pt", colCount=2, verSpacing=-6,
+                          brush=pg.mkBrush(255, 255, 255, 200))  # fmt: skip
+
+
 def thin(n: int, limit: int) -> slice:
     return slice(None, None, max(1, int(np.ceil(n / limit))))
 
@@ -69,7 +76,7 @@ class LoopPlot(pg.PlotWidget):
         label_axis(self.plotItem, "bottom", "estimated wire temperature", "°C")
         label_axis(self.plotItem, "left", "position", "mm")
         self.showGrid(x=False, y=False)
-        self.addLegend(offset=(-10, 10))
+        add_legend(self.plotItem)
         self.current = self.plot([], [], pen=pg.mkPen(BRIGHT, width=1), name="current cycle")
         dashed = pg.mkPen((20, 20, 20), width=1, style=QtCore.Qt.PenStyle.DashLine)
         self.model_curve = self.plot([], [], pen=dashed, name="model")
@@ -165,7 +172,7 @@ class TimePlots(pg.GraphicsLayoutWidget):
             p.showGrid(x=False, y=False)
             p.setDownsampling(auto=True, mode="peak")
             p.setClipToView(True)
-            p.addLegend(offset=(-10, 5))
+            add_legend(p)
             p.disableAutoRange()
         self.p_temp.setXLink(self.p_current)
         self.p_pos.setXLink(self.p_current)
@@ -218,9 +225,18 @@ class TimePlots(pg.GraphicsLayoutWidget):
             if np.isfinite(values).any():
                 keep_range(plot, "y", float(np.nanmin(values)), float(np.nanmax(values)))
 
-    def show_all(self) -> None:
-        """Replay: everything in view."""
-        for p in (self.p_current, self.p_temp, self.p_pos):
-            p.enableAutoRange()
-            p.autoRange()
-            p.disableAutoRange()
+    def show_all(self, buf: SampleBuffer) -> None:
+        """Replay: the whole session in view (ranges from the data itself: pyqtgraph's own
+        auto-range sees only what clipToView kept of a view not yet laid out)."""
+        t = buf.column("t_s")
+        finite = t[np.isfinite(t)]
+        if finite.size:
+            self.p_current.setXRange(float(finite[0]), float(finite[-1]), padding=0.01)
+        for plot, names in ((self.p_current, ("current_set_A", "current_A")),
+                            (self.p_temp, ("temperature_est_C", "temperature_C")),
+                            (self.p_pos, ("position_mm", "setpoint_mm"))):  # fmt: skip
+            values = np.concatenate([buf.column(n) for n in names])
+            if np.isfinite(values).any():
+                lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
+                pad = 0.08 * (hi - lo) or 0.5
+                plot.setYRange(lo - pad, hi + pad, padding=0)

@@ -131,16 +131,17 @@ class ReplayView(QtWidgets.QWidget):
         self.title.setStyleSheet("font-weight: bold; padding: 4px; background: #e8eef7;")
         self.title.setWordWrap(True)
         v.addWidget(self.title)
-        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        split = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)  # as the Live tab
         self.loop_plot = LoopPlot()
         self.time_plots = TimePlots()
         self.time_plots.follow = False
         split.addWidget(self.loop_plot)
         split.addWidget(self.time_plots)
+        split.setSizes([400, 600])
         v.addWidget(split, 1)
         self.fit_text = QtWidgets.QPlainTextEdit()
         self.fit_text.setReadOnly(True)
-        self.fit_text.setMaximumHeight(110)
+        self.fit_text.setMaximumHeight(80)
         v.addWidget(self.fit_text)
         self.buffer = SampleBuffer()
         self.folder: Path | None = None
@@ -153,7 +154,7 @@ class ReplayView(QtWidgets.QWidget):
         self.buffer.append_columns(replay_columns(session))
         self.loop_plot.update_from(self.buffer)
         self.time_plots.update_from(self.buffer)
-        self.time_plots.show_all()
+        self.time_plots.show_all(self.buffer)
         self.loop_plot.autoRange()
         meta = session.meta
         cycles = self.buffer.column("cycle")
@@ -208,29 +209,32 @@ class SessionsMixin:
         item = self.session_list.currentItem()
         return Path(item.data(0, QtCore.Qt.ItemDataRole.UserRole)) if item else None
 
-    def open_session(self, folder: str | Path, after: Any = None) -> None:
+    def open_session(self, folder: str | Path, after: Any = None, switch: bool = True) -> None:
         """Replay a recorded session in the Replay tab (loaded off the GUI thread); then
-        ``after()``."""
+        ``after()``. ``switch``: the operator asked for it (the Replay tab comes to the front
+        when it is loaded, unless a session is running); a background result draws there
+        without changing the view."""
         from smabench.sessions import load_session
 
         folder = Path(folder)
-        self.say(f"Opening {folder.name} …")
+        self.announce(f"Opening {folder.name} …")
 
         def done(s) -> None:
             self.replay.show_session(folder, s, None)
-            self.tabs.setCurrentWidget(self.replay)
-            self.say(f"Replaying {folder.name} ({len(s)} samples) in the Replay tab.")
+            if switch and not self.running:
+                self.tabs.setCurrentWidget(self.replay)
+            self.announce(f"{folder.name} ({len(s)} samples) is in the Replay tab.")
             if after is not None:
                 after()
 
         self.jobs.submit(lambda: load_session(folder), done,
-                         lambda exc: self.say(f"Cannot open {folder}: {words.plain(str(exc))}",
-                                              error=True))  # fmt: skip
+                         lambda exc: self.announce(
+                             f"Cannot open {folder}: {words.plain(str(exc))}", error=True))
 
     def open_selected(self) -> None:
         folder = self.selected_session()
         if folder is None:
-            self.say("Choose a session in the list first.", error=True)
+            self.announce("Choose a session in the list first.", error=True)
             return
         self.open_session(folder)
 
@@ -268,16 +272,16 @@ class SessionsMixin:
 
         def done(n: int) -> None:
             self.last_export_rows = n
-            self.say(f"{n} rows written to {out}.")
+            self.announce(f"{n} rows written to {out}.")
 
         self.jobs.submit(lambda: export_csv(load_session(folder), out), done,
-                         lambda exc: self.say(f"Export failed: {words.plain(str(exc))}",
-                                              error=True))  # fmt: skip
+                         lambda exc: self.announce(f"Export failed: {words.plain(str(exc))}",
+                                                   error=True))  # fmt: skip
 
     def export_dialog(self) -> None:
         folder = self.selected_session()
         if folder is None:
-            self.say("Choose a session to export in the list first.", error=True)
+            self.announce("Choose a session to export in the list first.", error=True)
             return
         dlg = self._dialog_for("Export CSV", "save", str(folder.with_suffix(".csv")))
         dlg.fileSelected.connect(lambda out: self.export_session(folder, out))
@@ -288,29 +292,30 @@ class SessionsMixin:
         drawn in the Replay tab, over that session."""
         folder = self.selected_session()
         if folder is None:
-            self.say("Choose a session to fit in the list first.", error=True)
+            self.announce("Choose a session to fit in the list first.", error=True)
             return
         if self.fit_cycle.error():
-            self.say(f"Not fitted: {self.fit_cycle.error()}.", error=True)
+            self.announce(f"Not fitted: {self.fit_cycle.error()}.", error=True)
             return
         model, cycle = self.fit_model.currentText(), self.fit_cycle.value()
         self.last_fit = None
-        self.say(f"Fitting the {model} model to {folder.name} …")
+        self.announce(f"Fitting the {model} model to {folder.name} …")
 
         def done(fit: dict[str, Any]) -> None:
+            # a background result: drawn in the Replay tab, announced beside the message
+            # line; the view and the message line (an E-STOP's, a saved session's) stay
             def show() -> None:
                 self.replay.show_fit(fit["text"], fit["temp"], fit["model_mm"])
-                self.tabs.setCurrentWidget(self.replay)
                 self.last_fit = fit
-                self.say(f"Fitted {model} to {folder.name}, cycle {fit['cycle']}: nrmse "
-                         f"{fit['nrmse_percent']:.2f} % of stroke.")  # fmt: skip
+                self.announce(f"Fit done: {model} on {folder.name}, cycle {fit['cycle']}, "
+                              f"nrmse {fit['nrmse_percent']:.2f} % of stroke (Replay tab).")
 
             if self.replay.folder != folder:  # drawn over the session it was fitted to
-                self.open_session(folder, after=show)
+                self.open_session(folder, after=show, switch=False)
             else:
                 show()
 
         self.jobs.compute(fit_session, (folder, model, cycle), done,
-                         lambda exc: self.say(f"Not fitted: {words.plain(str(exc))}",
-                                              error=True))  # fmt: skip
+                         lambda exc: self.announce(f"Not fitted: {words.plain(str(exc))}",
+                                                   error=True))  # fmt: skip
 

@@ -23,7 +23,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtWidgets
 
-from smabench.gui.plots import label_axis
+from smabench.gui.plots import add_legend, label_axis
 from smabench.sessions import CYCLE_COLUMNS, CYCLES_FILE
 
 log = logging.getLogger(__name__)
@@ -107,6 +107,25 @@ class CycleTail:
         self.version += 1
 
 
+class CycleAxis(pg.AxisItem):
+    """A cycle-number axis: ticks on whole cycles only (1, 2, 5, 10, 20 … apart)."""
+
+    def tickValues(self, minVal, maxVal, size):  # noqa: N802,N803 (pyqtgraph's names)
+        out = []
+        for spacing, values in super().tickValues(minVal, maxVal, size):
+            if spacing < 1:
+                continue
+            ints = [v for v in values if abs(v - round(v)) < 1e-9 and v >= 1]
+            out.append((spacing, ints))
+        if not any(v for _, v in out):  # a short range: every cycle in it
+            lo, hi = max(1, int(np.ceil(minVal))), int(np.floor(maxVal))
+            out = [(1.0, [float(v) for v in range(lo, hi + 1)])]
+        return out
+
+    def tickStrings(self, values, scale, spacing):  # noqa: N802 (pyqtgraph's name)
+        return [str(int(round(v))) for v in values]
+
+
 class TrendPlots(pg.GraphicsLayoutWidget):
     """Positions, stroke and residual, peak temperature against the cycle number."""
 
@@ -114,11 +133,11 @@ class TrendPlots(pg.GraphicsLayoutWidget):
         super().__init__(parent)
         self.p_pos = self.addPlot(row=0, col=0)
         self.p_stroke = self.addPlot(row=1, col=0)
-        self.p_temp = self.addPlot(row=2, col=0)
+        self.p_temp = self.addPlot(row=2, col=0, axisItems={"bottom": CycleAxis("bottom")})
         for p, label, unit in ((self.p_pos, "position", "mm"), (self.p_stroke, "stroke", "mm"),
                                (self.p_temp, "peak T", "°C")):  # fmt: skip
             label_axis(p, "left", label, unit)
-            p.addLegend(offset=(-10, 5))
+            add_legend(p)
         for p in (self.p_stroke, self.p_temp):
             p.setXLink(self.p_pos)
         label_axis(self.p_temp, "bottom", "cycle", "#")
@@ -132,6 +151,14 @@ class TrendPlots(pg.GraphicsLayoutWidget):
                                              name="accumulated residual (end − first start)")
         self.c_temp = self.p_temp.plot(pen=pg.mkPen((200, 40, 40), width=1),
                                        name="peak wire temperature (estimated)")  # fmt: skip
+        for c in (self.c_min, self.c_max, self.c_stroke, self.c_residual, self.c_temp):
+            # a marker on each cycle: one finished cycle is a visible point, not nothing
+            c.setSymbol("o")
+            c.setSymbolSize(5)
+            c.setSymbolPen(c.opts["pen"])
+            c.setSymbolBrush(c.opts["pen"].color())
+        for p in (self.p_pos, self.p_stroke):
+            p.getAxis("bottom").setStyle(showValues=False)
         self.measured = False
         self.shown_version = -1
 
@@ -162,4 +189,14 @@ class TrendPlots(pg.GraphicsLayoutWidget):
                                        else "peak wire temperature (estimated)")  # fmt: skip
         peak = measured if use else tail.column("temperature_est_max_C")
         self.c_temp.setData(x, peak, connect="finite")
+        # whole cycles in view, at least 1 … 5 (one cycle is a point in the middle, not a
+        # range of fractions)
+        self.p_temp.setXRange(0.5, max(5.5, float(np.nanmax(x)) + 0.5), padding=0)
+        for plot, ys in ((self.p_pos, (lo, hi)), (self.p_stroke, (hi - lo, end - (
+                first[0] if first.size else np.nan))), (self.p_temp, (peak,))):  # fmt: skip
+            v = np.concatenate([np.asarray(y, dtype=float) for y in ys])
+            if np.isfinite(v).any():
+                a, b = float(np.nanmin(v)), float(np.nanmax(v))
+                pad = 0.1 * (b - a) or max(0.05, 0.05 * abs(b))
+                plot.setYRange(a - pad, b + pad, padding=0)
         return True

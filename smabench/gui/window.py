@@ -33,6 +33,9 @@ from smabench.gui.fitjob import shown_cycle
 from smabench.gui.gui_gc import GuiThreadCollector
 from smabench.gui.layout import MODES, WindowLayout
 from smabench.gui.link import RuntimeLink, SampleBuffer
+from smabench.gui.persist import Remembered
+from smabench.gui.progress import estimate, planned_cycles_s
+from smabench.gui.readouts import Readouts
 from smabench.gui.sessions_view import Jobs, SessionsMixin
 from smabench.gui.specs import (
     GAIN_LAWS,
@@ -55,7 +58,11 @@ STATE_TEXT = {
     State.PAUSED: "Paused (output off)", State.ESTOPPED: "E-STOP LATCHED",
     State.ERROR: "Not connected",
 }  # fmt: skip
-LOST_STATUSES = 2  # status lines in a row with the driver link down while idle = device lost
+CONNECTED = (State.IDLE, State.STARTING, State.RUNNING, State.PAUSED)
+LOSS_GRACE_S = 0.3
+"""Wall time the driver link may be silent before the link counts as lost
+(``drivers.link.Link.link_timeout_s``): rows newer than the loss minus this are not live."""
+DRAIN_S = 5.0  # after a loss mid-run, how long the runtime may take to report the session's end
 
 
 class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
@@ -64,7 +71,10 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
     session_ended = QtCore.Signal(dict)
     OPEN_LOOP_KEY = OPEN_LOOP_CURRENT.key
 
-    def __init__(self, sessions_dir: str | Path = "sessions", mock_speed: float = 1.0) -> None:
+    def __init__(self, sessions_dir: str | Path = "sessions", mock_speed: float | None = 1.0,
+                 remember: bool = True) -> None:  # fmt: skip
+        """``mock_speed``: None keeps the remembered one; ``remember``: False for scripts
+        (benchmarks) that must neither read nor write the operator's remembered entries."""
         super().__init__()
         self.setWindowTitle("smabench")
         self.sessions_dir = Path(sessions_dir)
@@ -84,7 +94,13 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.estop_time: float | None = None
         self.frame_times_s: list[float] = []
         self.custom_gains: dict[str, list[float] | None] = {law: None for law, *_ in GAIN_LAWS}
-        self._link_down = 0
+        self.readouts = Readouts()
+        self._plan_s: list[float] | None = None  # the running open-loop protocol's cycles, s
+        self._time_scale = 1.0  # the connected bench's device time per wall time
+        self._connect_t0: float | None = None
+        self._connect_step = ""
+        self._drain_until: float | None = None  # lost mid-run: waiting for the end report
+        self._closing: list[Any] = []  # links being closed off the GUI thread
         self._paused_at: float | None = None
         self._paused_total_s = 0.0
         self._remaining_text = "–"
@@ -95,11 +111,18 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.jobs = Jobs()
         self.jobs.start_worker()  # fits' process up (and its imports done) before any run
         self.fields: dict[str, Field] = {}  # by settings-schema key
-        self._build(mock_speed)
+        self._build(1.0 if mock_speed is None else mock_speed)
+        self._refused_for_fields = False
+        for f in self.fields.values():
+            f.changed.connect(self._fields_edited)
         self.guard = EStopGuard(self.estop, self)
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.on_frame)
         self.timer.start(FRAME_MS)
+        self.remembered = Remembered(self, enabled=remember)
+        self.remembered.restore()
+        if mock_speed is not None:  # the caller's (command line, tests) over the remembered
+            self.mock_speed.set_value(mock_speed)
         self.refresh_sessions()
         self._apply_state()
 
@@ -130,8 +153,15 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.pause_button.setEnabled(c.pause)
         self.pause_button.setText("Resume" if st == State.PAUSED else "Pause")
         self.stop_button.setEnabled(c.stop)
-        self.banner.setVisible(st == State.ESTOPPED)
+        if st != State.ESTOPPED:
+            self.show_banner(False)
         self.ack_button.setEnabled(c.acknowledge)
+        self.defaults_button.setEnabled(c.session_fields)
+        if st == State.CONNECTING:
+            self.connect_button.setText("Cancel")
+        if st in NOT_CONNECTED or st == State.CONNECTING:
+            self.health.setText("not connected" if st != State.CONNECTING else "connecting …")
+            self.health.setStyleSheet("")
         for f in self.fields.values():
             if f.setting.group == "connection":
                 f.setEnabled(c.connection_fields)
@@ -149,6 +179,16 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             b.setEnabled(not in_run or self.session_controller)
         if not in_run:
             self.active_mode.setText("active law: – (no session running)")
+        self._show_readouts()
+
+    def _show_readouts(self) -> None:
+        if self.state == State.DISCONNECTED and self.readouts.mode == "fresh":
+            self.readout.setText("readouts: not connected")
+            return
+        self.readout.setText(self.readouts.text(time.monotonic()))
+        stale = self.readouts.mode != "fresh"
+        self.readout.setStyleSheet("color: #8a5a00; font-style: italic;" if stale
+                                   else "color: #333;")  # fmt: skip
 
     # ------------------------------------------------------------------ connection
     def refresh_ports(self) -> None:
@@ -200,26 +240,57 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.fire("connect")
         self.link = RuntimeLink(cfg)
         self.link_config = cfg
-        self._link_down = 0
-        self.health.setText("connecting …")
-        self.say("Connecting to the mock bench …" if "mock" in cfg else
-                 f"Connecting to the driver on {cfg['port']} …")  # fmt: skip
+        self._time_scale = float(cfg.get("time_scale", 1.0))
+        self._connect_t0 = time.monotonic()
+        self._connect_step = ("starting the bench program" if "mock" in cfg else
+                              f"opening the driver on {cfg['port']}")  # fmt: skip
+        self.readouts.thaw()
+        self.readouts.forget()
+        self._show_connecting()
         return True
 
+    def _show_connecting(self) -> None:
+        """What connecting is doing, for how long, and how to stop it."""
+        if self.state != State.CONNECTING or self._connect_t0 is None:
+            return
+        took = time.monotonic() - self._connect_t0
+        self.say(f"Connecting … {took:.0f} s: {self._connect_step}. Press Cancel to stop.")
+
+    def cancel_connect(self) -> None:
+        """Connecting stopped by the operator: the runtime (and its mock) closed, not connected."""
+        if self.state != State.CONNECTING:
+            return
+        self._drop_link()
+        self.pending_start = None
+        self.fire("disconnect")
+        self.say("Connecting cancelled.")
+
+    def _drop_link(self) -> None:
+        """Close the runtime link off the GUI thread (a stalled runtime must not freeze the
+        window or an E-STOP key); closed for good before the window quits."""
+        link, self.link = self.link, None
+        self._drain_until = None
+        if link is None:
+            return
+        import threading
+
+        t = threading.Thread(target=link.close, name="runtime-close", daemon=True)
+        t.start()
+        self._closing = [c for c in self._closing if c.is_alive()] + [t]
+
     def disconnect_devices(self) -> None:
-        if self.link is not None:
-            link, self.link = self.link, None
-            link.close()
+        self._drop_link()
         self.status = {}
         self.pending_start = None
-        self.health.setText("not connected")
-        self.readout.setText("readouts: not connected")
+        self.readouts.freeze("not connected", time.monotonic(), gone=True)
         if self.state != State.ESTOPPED:
             self.fire("disconnect")
         self._apply_state()
 
     def toggle_connection(self) -> None:
-        if self.state in NOT_CONNECTED:
+        if self.state == State.CONNECTING:
+            self.cancel_connect()
+        elif self.state in NOT_CONNECTED:
             self.connect_devices()
         else:
             self.disconnect_devices()
@@ -252,7 +323,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         default left out), checked by the schema; ValueError in words when one is refused."""
         errors = self.field_errors()
         if errors:
-            raise ValueError(errors[0])
+            raise ValueError("; ".join(errors))
         name = self.protocol.currentText()
         mode = self.selected_mode()
         closed = mode != "open_loop"
@@ -292,7 +363,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             return
         errors = self.field_errors()
         if errors:
-            self.say(f"Not started: {errors[0]}.", error=True)
+            self.say(f"Not started: {'; '.join(errors)}.", error=True)
+            self._refused_for_fields = True
             return
         question = stress_question(self._v("load_kg"), self._v("wire_preset"),
                                    self._v("long_life_stress_mpa"))  # fmt: skip
@@ -344,6 +416,10 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.session_controller = "controller" in settings
         self._show_setting_fields()
         self.pending_settings = settings
+        protocol = settings.get("protocol") or {}
+        self._plan_s = None if "controller" in settings else planned_cycles_s(protocol)
+        self.remembered.save()  # what was started is what the next start of the window shows
+        self.readouts.wire_preset = str(self._v("wire_preset"))
         self._fresh_session = True
         self.link.start(settings)
         self.say("Starting …")
@@ -375,21 +451,56 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         link = self.link
         sent = link.estop() if link is not None else False
         self.last_estop = None
+        was_lost = self.state == State.ERROR and self.readouts.why == "device lost"
+        self._close_dialogs()
         self.fire("estop")
+        self.readouts.freeze("E-STOP", time.monotonic(), gone=link is None,
+                             temperature_c=self._newest("temperature_est_C"))
+        if self.session_folder is not None or self._plan_s is not None:
+            elapsed = self.times.text().split("   remaining")[0]
+            self.times.setText(f"{elapsed}   stopped by the E-STOP")
+        self._plan_s = None
         if sent:
             text = ("E-STOP: output off command sent to the driver; waiting for its "
                     "confirmation …")  # fmt: skip
         elif self.state == State.ESTOPPED and link is not None and link.alive:
             text = "E-STOP: the bench is still connecting; nothing was driven."
+        elif was_lost:
+            text = ("E-STOP: the bench was lost, so nothing can be sent; the driver turns its "
+                    "output off by itself when the computer goes quiet. Check the bench.")
         else:
             text = "E-STOP: nothing is connected, so no output was on."
-        self.banner_label.setText(f"{text}  Press Acknowledge when it is safe to go on.")
+        self.show_banner(True, f"{text}  Press Acknowledge (beside the E-STOP) when it is safe.")
+        self._show_readouts()
         self.say(text, error=True)
+
+    def _close_dialogs(self) -> None:
+        """An E-STOP closes what is open over the window: drop-downs and menus, file dialogs,
+        the high-stress question (which then starts nothing)."""
+        app = QtWidgets.QApplication.instance()
+        for _ in range(5):
+            popup = app.activePopupWidget()
+            if popup is None:
+                break
+            popup.close()
+        dialog = getattr(self, "_dialog", None)
+        if dialog is not None and dialog.isVisible():
+            dialog.reject()
+        if self._question is not None:
+            box, self._question = self._question, None
+            box.finished.disconnect()
+            box.reject()
+        for w in app.topLevelWidgets():
+            if isinstance(w, QtWidgets.QDialog) and w.isVisible():
+                w.reject()
 
     def acknowledge_estop(self) -> None:
         if self.state != State.ESTOPPED:
             return
         self.fire("acknowledge_connected" if self.connected else "acknowledge_disconnected")
+        if self.connected:
+            self.readouts.thaw()
+        self._show_readouts()
         self.say("E-STOP acknowledged.")
 
     def set_mode(self, mode: str) -> None:
@@ -493,8 +604,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         link = self.link
         if link is not None:
             rows = link.take_rows()
-            if rows.size and self.state in (State.RUNNING, State.PAUSED, State.STARTING,
-                                            State.ESTOPPED):  # fmt: skip
+            if rows.size and self.state in (State.RUNNING, State.PAUSED, State.STARTING):
+                # (after an E-STOP or a loss the rows still coming are not live)
                 if self._fresh_session:  # the first rows of a new session
                     self._clear_live()
                 self.buffer.append_rows(rows)
@@ -502,8 +613,13 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                 if self.link is not link:  # disconnected while handling an event
                     break
                 self.on_event(kind, payload)
+            if self._drain_until is not None and time.monotonic() > self._drain_until:
+                self._drop_link()  # the runtime did not report the lost session's end
         self.jobs.poll()
-        self.jobs_label.setText("working …" if self.jobs.busy else "")
+        if self.jobs.busy and not self.jobs_label.text().startswith("working"):
+            self.jobs_label.setText("working … " + self.jobs_label.text())
+        if self.state == State.CONNECTING and self._frames % 15 == 0:
+            self._show_connecting()
         if self.tabs.currentIndex() == 0 and self.buffer.n:
             self.loop_plot.update_from(self.buffer)
             self.time_plots.update_from(self.buffer)
@@ -512,6 +628,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self.cycle_tail.read()
         if self.tabs.currentWidget() is self.trend_plots:
             self.trend_plots.update_from(self.cycle_tail)
+        if self._frames % TREND_EVERY == 0 and self.readouts.mode != "fresh":
+            self._show_readouts()  # the ages and the cooling estimate move on
         if self.buffer.n:
             sp = self.buffer.column("setpoint_mm")[-1]
             self.setpoint_label.setText(
@@ -520,10 +638,21 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.frame_times_s.append(time.perf_counter() - t0)
         del self.frame_times_s[:-1000]
 
+    def announce(self, text: str, error: bool = False) -> None:
+        """A background result (a fit, an export, a session read): beside the message line,
+        never in it (an E-STOP's or a saved session's message stays) and never a change of
+        view."""
+        if error:
+            log.warning("%s", text)
+        self.jobs_label.setText(text)
+        self.jobs_label.setStyleSheet("color: #c62828;" if error else "color: #1a4f8a;")
+
     def on_event(self, kind: str, payload: dict[str, Any]) -> None:
         if kind == "P":
             self.link.ports = payload
+            self._connect_t0 = None
             self.fire("connected")
+            self.readouts.thaw()
             dev = payload["device"]
             where = "mock bench" if payload.get("mock_pid") else payload["driver"]
             self.say(f"Connected: {dev['name']} ({where}).")
@@ -539,13 +668,20 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self._on_runtime_gone(payload)
 
     def _on_status(self, st: dict[str, Any]) -> None:
+        if "connecting" in st:  # what the runtime is opening now
+            self._connect_step = str(st["connecting"])
+            self._show_connecting()
+            return
+        if self.state == State.ERROR:  # lost: what the runtime still says is not the bench's
+            return
         if "error" in st:
             text = words.plain(st["error"])
             if st.get("command") == "start" or self.state == State.STARTING:
                 self._fresh_session = False  # a refused start leaves the plots as they were
+                self._plan_s = None
                 self.fire("refused")
                 self.say(f"Not started: {text}", error=True)
-            else:
+            elif self.state != State.ESTOPPED:
                 self.say(text, error=True)
             return
         if "started" in st:
@@ -557,9 +693,10 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                 self._clear_live()
             self.progress.setValue(0)
             self.last_end = None
-            self.fire("started")
-            self.tabs.setCurrentIndex(0)
-            self.say(f"Running; recording to {self.session_folder}")
+            if self.state == State.STARTING:
+                self.fire("started")
+                self.tabs.setCurrentIndex(0)
+                self.say(f"Running; recording to {self.session_folder}")
             return
         self.status = st
         self._show_status(st)
@@ -575,51 +712,56 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
     def _show_status(self, st: dict[str, Any]) -> None:
         stats = st.get("sensor_stats", {})
         drv_ok = bool(st.get("driver_link_ok"))
+        if not drv_ok and self.state in CONNECTED:
+            # the one place a lost driver is decided: the whole window follows at once
+            self._device_lost(words.LOST_DRIVER_RUN if self.running else words.LOST_DRIVER_IDLE)
+            return
         fault = words.plain(st["driver_fault"]) if st.get("driver_fault") else ""
-        self.health.setText(
-            f"driver {'ok' if drv_ok else 'LOST'}{' · ' + fault if fault else ''} · sensor "
-            f"{stats.get('ok', 0)}/{stats.get('reads', 0)} ok, {stats.get('timeouts', 0)} timeouts"
-        )
-        self.health.setStyleSheet("" if drv_ok and not fault else "color: #c62828;")
-        r = st.get("readout", {})
-
-        def fmt(v: Any, f: str) -> str:
-            return "–" if v is None else format(v, f)
-
+        if self.state not in NOT_CONNECTED:
+            self.health.setText(
+                f"driver {'ok' if drv_ok else 'LOST'}{' · ' + fault if fault else ''} · sensor "
+                f"{stats.get('ok', 0)}/{stats.get('reads', 0)} ok, "
+                f"{stats.get('timeouts', 0)} timeouts"
+            )
+            self.health.setStyleSheet("" if drv_ok and not fault else "color: #c62828;")
         mode = st.get("mode")
-        self.readout.setText(
-            f"current {fmt(r.get('current_a'), '.3f')} A · position "
-            f"{fmt(r.get('position_mm'), '.3f')} mm · wire (estimated) "
-            f"{fmt(r.get('temperature_c'), '.1f')} °C"
-            + ("" if r.get("temperature_measured_c") is None
-               else f" · wire (measured) {r['temperature_measured_c']:.1f} °C")
-            + f" · ambient {fmt(r.get('ambient_c'), '.1f')}"
-            f" °C · law {MODE_LABEL.get(mode, 'open loop') if st.get('running') else '–'}"
-        )
-        if st.get("running") and mode:
+        law = MODE_LABEL.get(mode, "open loop") if st.get("running") else ""
+        self.readouts.update(st.get("readout", {}), time.monotonic(), law)
+        self._show_readouts()
+        if st.get("running") and mode and self.state in (State.RUNNING, State.PAUSED):
             self.active_mode.setText(f"active law: {MODE_LABEL.get(mode, mode)}")
             if mode == "open_loop" and self._open_current_due is not None:
                 self._send_open_current()
                 self._open_current_due = None
             if self.session_controller and mode in self.mode_buttons:
                 self.mode_buttons[mode].setChecked(True)
-        if self.state == State.IDLE:
-            self._link_down = 0 if drv_ok else self._link_down + 1
-            if self._link_down >= LOST_STATUSES:
-                self._lose(words.LOST_DRIVER_IDLE)
-                return
         if "progress" in st and st.get("running") and self.state in (State.RUNNING,
                                                                       State.PAUSED):
+            self._show_progress(st)
+
+    def _show_progress(self, st: dict[str, Any]) -> None:
+        """Progress and remaining time: from the protocol's plan (open loop) or the reference's
+        device time (controller), from the first second; frozen while paused."""
+        el = float(st.get("elapsed_s", 0.0))
+        cycle = int(st.get("cycle") or 0)
+        if self.state == State.RUNNING:  # frozen while paused
             p = float(st["progress"])
-            self.progress.setValue(int(1000 * p))
-            el = float(st.get("elapsed_s", 0.0))
-            if self.state == State.RUNNING:  # frozen while paused
+            remaining_s: float | None = None
+            if self._plan_s and self.buffer.n:
+                t = self.buffer.column("t_s")
+                cyc = self.buffer.column("cycle")
+                k = int(np.nanmax(cyc)) if np.isfinite(cyc).any() else 0
+                start = t[int(np.argmax(cyc >= k))] if k > 0 else 0.0
+                p, rest_device_s = estimate(self._plan_s, float(t[-1]), k, float(start))
+                remaining_s = rest_device_s / max(self._time_scale, 1e-9)
+            elif p > 0:
                 active = el - self._paused_total_s
-                self._remaining_text = f"{active / p * (1 - p):.0f} s" if p > 0.02 else "–"
-            cycle = int(st.get("cycle") or 0)
-            self.times.setText(f"elapsed {el:.0f} s   remaining {self._remaining_text}   "
-                               f"cycle {shown_cycle(cycle)} of {st['cycles']} · "
-                               f"{st['phase']}")  # fmt: skip
+                remaining_s = active / p * (1 - p)
+            self.progress.setValue(int(1000 * p))
+            self._remaining_text = "–" if remaining_s is None else f"{remaining_s:.0f} s"
+        self.times.setText(f"elapsed {el:.0f} s   remaining {self._remaining_text}   "
+                           f"cycle {shown_cycle(cycle)} of {st['cycles']} · "
+                           f"{st['phase']}")  # fmt: skip
 
     def _on_estop_report(self, x: dict[str, Any]) -> None:
         self.last_estop = x
@@ -630,8 +772,9 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             text = ("E-STOP: the driver did not confirm output off. It switches itself off "
                     "when the computer stops talking to it; check the bench.")  # fmt: skip
         if self.state == State.ESTOPPED:
-            self.banner_label.setText(f"{text}  Press Acknowledge when it is safe to go on.")
-        self.say(text, error=not x.get("confirmed"))
+            self.show_banner(True, f"{text}  Press Acknowledge (beside the E-STOP) when it is "
+                             "safe.")  # fmt: skip
+            self.say(text, error=not x.get("confirmed"))
 
     def _on_end(self, end: dict[str, Any]) -> None:
         if self.state == State.CONNECTING:  # the runtime could not open the devices
@@ -639,38 +782,99 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             return
         self.last_end = end
         self._paused_at = None
+        self._plan_s = None
         status = end.get("status", "aborted")
         reason = words.plain(end.get("reason", ""))
+        lost = words.device_lost(end.get("reason", ""))
+        self.cycle_tail.read()  # the last cycles, written when the session closed
+        self.session_folder = None
+        folder = end.get("folder")
+        n = end.get("samples")
+        samples = f" {n} samples" if n is not None else ""
+        saved = f"{samples} saved in {folder}." if folder else " Nothing was saved."
+        self.refresh_sessions()
+        if self.state == State.ERROR:  # lost mid-run: the runtime's report of that session
+            self._not_live_after_loss(end.get("reason", ""))
+            self.say(f"{self.message.text()}{saved}", error=True)
+            self._drop_link()
+            self.session_ended.emit(end)
+            return
         if status == "completed":
             self.progress.setValue(1000)
         el = float(self.status.get("elapsed_s", 0.0))
         self.times.setText(f"elapsed {el:.0f} s   ended: {status}")
-        folder = end.get("folder")
-        n = end.get("samples")
         head = "Session completed." if status == "completed" else f"Session {status}: {reason}"
-        samples = f" {n} samples" if n is not None else ""
-        text = (f"{head}{samples} saved in {folder}." if folder
-                else f"{head} Nothing was saved.")  # fmt: skip
-        self.cycle_tail.read()  # the last cycles, written when the session closed
-        self.session_folder = None
-        lost = words.device_lost(end.get("reason", ""))
-        if self.state != State.ESTOPPED:
-            self.fire("ended")
-        self.say(text, error=status != "completed")
-        self.refresh_sessions()
-        self.session_ended.emit(end)
         if lost:
-            self._lose(text)
+            self.session_ended.emit(end)
+            self._device_lost(f"{words.LOST_DRIVER_RUN}{saved}", end.get("reason", ""))
+            return
+        if self.state == State.ESTOPPED:
+            pass  # the latched E-STOP's message and banner stay
+        else:
+            if status == "aborted":  # a trip: the numbers before it are history
+                self.readouts.freeze("stopped", time.monotonic(),
+                                     temperature_c=self._newest("temperature_est_C"))
+            self.fire("ended")
+            self.say(f"{head}{saved}", error=status != "completed")
+        self.session_ended.emit(end)
 
-    def _lose(self, text: str) -> None:
-        """A device or the runtime is gone: message, link closed, buttons back to Connect."""
-        if self.link is not None:
-            link, self.link = self.link, None
-            link.close(timeout_s=2.0)
+    def _newest(self, column: str) -> float | None:
+        """The newest finite value of a streamed column (None when there is none)."""
+        if not self.buffer.n:
+            return None
+        v = self.buffer.column(column)[-50:]
+        v = v[np.isfinite(v)]
+        return float(v[-1]) if v.size else None
+
+    def _not_live_after_loss(self, reason: str) -> None:
+        """Rows recorded after the driver went silent carry its last frame (the current it
+        last measured): shown as gaps, not as live values."""
+        import re
+
+        m = re.search(r"lost for ([\d.]+) s", reason)
+        silent_s = float(m.group(1)) if m else LOSS_GRACE_S
+        if not self.buffer.n:
+            return
+        t = self.buffer.column("t_s")
+        cut = t[-1] - silent_s * max(self._time_scale, 1.0)
+        i = self.buffer.index_of(0)
+        after = np.nonzero(t[i:] > cut)[0] + i
+        for name in ("current_A", "position_mm", "temperature_est_C", "current_set_A"):
+            self.buffer.column(name)[after] = np.nan
+        self.loop_plot.reset()
+        self.time_plots.reset()
+
+    def _device_lost(self, text: str, reason: str = "") -> None:
+        """A device is gone: the state, every readout, the health line and the message say so
+        at once; a session's rows after the loss are not drawn as live. A running session is
+        ended by the runtime (its driver is silent); its end report, when it comes within
+        ``DRAIN_S``, names the saved folder."""
+        in_session = self.session_folder is not None
         self.status = {}
         self.pending_start = None
-        self.health.setText("not connected")
-        self.readout.setText("readouts: not connected")
+        self._plan_s = None
+        self.readouts.freeze("device lost", time.monotonic(), gone=True,
+                             temperature_c=self._newest("temperature_est_C"))
+        self.times.setText("elapsed –   remaining –   device lost")
+        self.fire("lost")
+        if self.state != State.ESTOPPED:
+            self.say(text, error=True)
+        if in_session and not reason:  # the end report is still to come
+            self._drain_until = time.monotonic() + DRAIN_S
+            self._not_live_after_loss("")
+        else:
+            if reason:
+                self._not_live_after_loss(reason)
+            self.session_folder = None
+            self._drop_link()
+        self._apply_state()
+
+    def _lose(self, text: str) -> None:
+        """The runtime is gone: message, link closed, buttons back to Connect."""
+        self._drop_link()
+        self.status = {}
+        self.pending_start = None
+        self.readouts.freeze("bench program stopped", time.monotonic(), gone=True)
         self.times.setText("elapsed –   remaining –")
         self.fire("lost")
         self.say(text, error=True)
@@ -683,6 +887,12 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self.say(f"Could not connect: {reason}", error=True)
             return
         folder = self.session_folder
+        if self.state == State.ERROR:  # lost before: the runtime closed after it
+            if folder is not None:
+                self._close_aborted(folder)
+                self.session_folder = None
+            self._drop_link()
+            return
         if folder is not None:
             self._close_aborted(folder)
             self.session_folder = None
@@ -715,8 +925,25 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         if error:
             self.last_error = text
             log.warning("%s", text)
+        self._refused_for_fields = False
         self.message.setText(text)
         self.message.setStyleSheet("color: #c62828; font-weight: bold;" if error else "")
+
+    def _fields_edited(self) -> None:
+        """A start refused for its fields: the message follows the fields (the list shrinks as
+        they are fixed, and goes when none is left)."""
+        if not self._refused_for_fields:
+            return
+        errors = self.field_errors()
+        if errors:
+            self.message.setText(f"Not started: {'; '.join(errors)}.")
+        else:
+            self.say("All fields valid: press Start.")
+
+    def restore_defaults(self) -> None:
+        """Every setting back to the schema's default (the connection kept)."""
+        self.remembered.defaults()
+        self.say("Settings back to their defaults.")
 
     def show_error(self, text: str) -> None:
         self.say(words.plain(text), error=True)
@@ -727,7 +954,10 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.guard.remove()
         if self.link is not None:
             self.link.estop()
+        self.remembered.save()
         self.disconnect_devices()
+        for t in self._closing:  # the runtime (and its mock) gone before the window is
+            t.join(15.0)
         self.jobs.close()
         self.collector.stop()
         super().closeEvent(event)

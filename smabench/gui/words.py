@@ -30,6 +30,10 @@ LOST_SENSOR = (
     "The displacement sensor stopped answering (cable, power or network?). The output was turned "
     "off and the session closed as aborted."
 )
+LOST_DRIVER_RUN = (
+    "Device lost: the current driver stopped answering (cable, USB or power?). Its output turns "
+    "itself off; the session was closed as aborted. Press Connect when it is back."
+)
 RUNTIME_DIED = (
     "The bench program stopped unexpectedly. The driver turns its output off by itself when the "
     "computer goes quiet; any running session was closed as aborted."
@@ -39,7 +43,8 @@ RULES: list[_Rule] = [
     _rule(r"^e-stop$", "Stopped by the E-STOP."),
     _rule(r"stopped by operator", "Stopped by the operator."),
     _rule(r"protocol completed", "Completed."),
-    _rule(r"telemetry lost|driver link (is )?(lost|down)|link lost|LinkTimeout|LinkError",
+    _rule(r"telemetry lost|driver lost|driver link (is )?(lost|down)|link lost|LinkTimeout|"
+          r"LinkError",
           LOST_DRIVER),
     _rule(r"displacement sensor lost", LOST_SENSOR),
     _rule(r"runtime process (exited|is not running)|BrokenPipe", RUNTIME_DIED),
@@ -64,7 +69,7 @@ RULES: list[_Rule] = [
           f"{float(m.group(1)):.0f} °C, the limit is {float(m.group(2)):.0f} °C."),
     _rule(r"interlock: position ([-\d.]+) mm outside ([-\w.]+) … ([-\w.]+) mm",
           lambda m: f"Stopped by the position limits: the wire reached {float(m.group(1)):.3f} mm,"
-          f" outside {m.group(2)} … {m.group(3)} mm."),
+          f" outside {m.group(2)} to {m.group(3)} mm."),
     _rule(r"current driver fault: (.*)",
           lambda m: f"The current driver reported a fault: {_clean(m.group(1))}."),
     _rule(r"maximum duration ([\d.]+) s reached",
@@ -76,8 +81,29 @@ RULES: list[_Rule] = [
 ]
 
 
+_NUM = r"-?\d+(?:\.\d+)?(?:e-?\d+)?"
+_INTERVAL = re.compile(rf"([\[(])({_NUM}), ({_NUM})([\])])")
+_SPAN = re.compile(rf"({_NUM}) … ({_NUM})")
+
+
+def ranges_in_words(text: str) -> str:
+    """Ranges written as intervals ("(0, 10]") or spans ("0 … 2.5") in a library's or the
+    runtime's sentence, in :func:`range_words`' notation ("more than 0, up to 10", "0 to
+    2.5")."""
+
+    def interval(m: re.Match[str]) -> str:
+        lo = f"more than {m.group(2)}," if m.group(1) == "(" else m.group(2)
+        hi = f"less than {m.group(3)}" if m.group(4) == ")" else m.group(3)
+        return f"{lo} {'up to' if m.group(1) == '(' else 'to'} {hi}"
+
+    text = _INTERVAL.sub(interval, text)
+    text = _SPAN.sub(lambda m: f"{m.group(1)} to {m.group(2)}", text)
+    return re.sub(r"must be in (?=\S)", "must be ", text)
+
+
 def _clean(text: str) -> str:
     """Drop command echoes, exception class names, JSON, option hints and errno prefixes."""
+    text = ranges_in_words(text)
     text = re.sub(r"^\w+:\s+(?=[A-Z]\w*(Error|Exception|Timeout)\b)", "", text)  # "start: "
     text = re.sub(r"\b[A-Z]\w*(Error|Exception|Timeout):\s*", "", text)
     text = re.sub(r"\{.*\}", "", text, flags=re.DOTALL)
@@ -107,7 +133,7 @@ def plain(text: str, limit: int = 240) -> str:
 
 def device_lost(reason: str) -> bool:
     """Whether a session's end reason means a device is gone (the link must be reopened)."""
-    return bool(re.search(r"telemetry lost|sensor lost|link lost|LinkError|LinkTimeout|"
+    return bool(re.search(r"telemetry lost|sensor lost|link lost|driver lost|LinkError|LinkTimeout|"
                           r"SerialException|could not open port", str(reason), re.IGNORECASE))
 
 
@@ -122,3 +148,54 @@ def plain_connect(text: str) -> str:
     if device_lost(text) or re.search(r"did not answer|no answer|handshake", str(text), re.I):
         return NO_ANSWER_AT_CONNECT
     return plain(text)
+
+
+def _num(v: float) -> str:
+    return f"{v:g}"
+
+
+def range_words(setting) -> str:
+    """A setting's allowed values in one notation, the operator's words: "0 to 2.5 A", "more
+    than 0, up to 10 kg", "at least 1"; '' when unbounded."""
+    if setting.kind == "choice":
+        return "one of " + ", ".join(setting.choices)
+    lo, hi = setting.min, setting.max_value
+    if lo is None and hi is None:
+        return ""
+    if hi is None:
+        text = f"{'more than' if setting.min_open else 'at least'} {_num(lo)}"
+    elif lo is None:
+        text = f"{'less than' if setting.max_open else 'at most'} {_num(hi)}"
+    else:
+        low = f"more than {_num(lo)}," if setting.min_open else _num(lo)
+        high = f"less than {_num(hi)}" if setting.max_open else _num(hi)
+        text = f"{low} {'up to' if setting.min_open else 'to'} {high}"
+    text = f"{text} {setting.unit}".rstrip()
+    if isinstance(setting.max, str):
+        from smabench.settings import SETTINGS
+
+        text += f", and not above the {SETTINGS[setting.max].label}"
+    return text
+
+
+def setting_problem(setting, exc: Exception) -> str:
+    """The operator's sentence for a refused value of ``setting``: its label, what was typed
+    and the allowed values in :func:`range_words` (no key names, no interval brackets)."""
+    reason = str(getattr(exc, "reason", exc))
+    if setting.range_text and setting.range_text in reason:
+        got = reason.rsplit(", got ", 1)[-1] if ", got " in reason else ""
+        return f"{setting.label}: {got or 'this value'} is not allowed ({range_words(setting)})"
+    return _clean(reason)
+
+
+def tooltip(setting) -> str:
+    """Help for a field: the schema's help, the allowed values (:func:`range_words`), the
+    default; no key names."""
+    parts = [setting.help]
+    rng = range_words(setting)
+    if rng and setting.kind != "choice":
+        parts.append(f"Allowed: {rng}.")
+    parts.append(f"Default: {setting.default_text}.")
+    if setting.live:
+        parts.append("Can change during a run.")
+    return " ".join(parts)

@@ -32,6 +32,7 @@ from smabench.sessions import (
     FLAG_DEADLINE_MISSED,
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
+    FLAG_TELEMETRY_STALE,
     EventLog,
     SessionWriter,
     load_session,
@@ -575,3 +576,13 @@ def test_a_driver_that_goes_off_with_no_reason_then_silent_is_named_lost(tmp_pat
     assert [e["event"] for e in events][-2:] == ["output_off_not_confirmed", "session_end_reason"]
     live = [r for r in rows if not int(r["flags"]) & FLAG_AFTER_END]
     assert live[-1]["t_s"] < 1.0 + 0.02  # nothing after the loss looks live
+
+
+def test_rows_after_the_drivers_last_frame_are_flagged_stale_until_the_loss():
+    result, rows, bench = session(Constant(0.8), at={100: lambda rt, b: b.source.stall_telemetry()})
+    flags = col(rows, "flags").astype(int)
+    stale = (flags & FLAG_TELEMETRY_STALE) != 0
+    t = col(rows, "t_s")
+    assert not stale[60:100].any()  # frames every 10 ms: live
+    late = t > t[100] + 0.06  # the last frame came at most 10 ms before the stall
+    assert stale[late].all() and late.sum() >= 30  # none of the rows before the loss looks live

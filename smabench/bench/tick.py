@@ -94,6 +94,7 @@ class RuntimeConfig:
     position_min_mm: float = -math.inf
     position_max_mm: float = math.inf
     link_timeout_s: float = 0.25  # driver telemetry silent this long: abort (safe < 0.5 s)
+    telemetry_stale_s: float = 0.05  # a frame older than this (5 periods) flags its row stale
     sensor_timeout_s: float = 1.0  # no valid position this long: abort (shorter bursts flagged)
     max_duration_s: float = math.inf
     ambient_c: float = 22.0
@@ -213,6 +214,8 @@ class ControlTick:
                     else f"current driver telemetry lost for {telemetry_age_s:.2f} s",
                     "device",
                 )
+            flags |= FLAG_TELEMETRY_STALE
+        elif telemetry_age_s > cfg.telemetry_stale_s:  # not lost yet, but not live either
             flags |= FLAG_TELEMETRY_STALE
         output_on = telemetry is not None and bool(telemetry.flags & Flag.ENABLED)
         if not output_on:

@@ -32,6 +32,7 @@ pytest.importorskip("pytestqt")
 from gui_support import (  # noqa: E402
     FAST_MOCK_SPEED,
     dispose,
+    measured_current_a,
     open_window,
     run_until_completed,
     start_running,
@@ -356,3 +357,35 @@ def test_quitting_is_clean(qtbot, tmp_path):
     assert not [x for x in link.stderr_lines if "Traceback" in x or "Error" in x], \
         link.stderr_lines  # fmt: skip
 
+
+
+# ------------------------------------------------------------------------- the record (issue 25)
+@pytest.mark.slow
+def test_an_estopped_sessions_record_shows_the_current_reaching_zero_and_the_chain(qtbot, win):
+    """Esc mid-heating: the session keeps recording until the driver reports the current below
+    20 mA, and events.jsonl holds the chain from the key press (its own time) to that frame."""
+    from smabench.sessions import FLAG_AFTER_END, load_session, read_events
+
+    heating(qtbot, win)
+    qtbot.waitUntil(lambda: measured_current_a(win) > 1.2, timeout=30000)
+    QTest.keyClick(win.fit_cycle, Qt.Key.Key_Escape)
+    handled_t = time.monotonic()
+    qtbot.waitUntil(lambda: win.last_end is not None, timeout=15000)
+    folder = win.last_end["folder"]
+    events = read_events(folder)
+    names = [e["event"] for e in events]
+    assert names[:3] == ["estop_input", "command_sent", "session_end"], names
+    assert names[-1] == "current_below_threshold", names
+    first, sent, below = events[0], events[1], events[-1]
+    assert first["source"] == "key Esc"
+    assert first["t_host_s"] <= sent["t_host_s"] <= handled_t + 0.5
+    assert sent["acked"] is True and sent["why"] == "e-stop"
+    assert below["current_a"] < 0.02 and below["t_host_s"] >= sent["t_host_s"]
+    assert below["t_host_s"] - first["t_host_s"] < 1.0
+    data = load_session(folder)
+    flags = np.asarray(data.data["flags"], dtype=int)
+    current = np.asarray(data.data["current_A"], dtype=float)
+    assert (flags[-1] & FLAG_AFTER_END) and abs(current[-1]) < 0.02  # the record ends at 0 A
+    assert (current[(flags & FLAG_AFTER_END) == 0][-5:] > 1.0).all()  # stopped mid-heating
+    meta = data.meta
+    assert meta["status"] == "aborted" and meta["end_reason"] == "e-stop"

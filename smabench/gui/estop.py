@@ -23,20 +23,58 @@ ESTOP_KEYS = ((Qt.Key.Key_Escape, Qt.KeyboardModifier.NoModifier),
 KEY_NAMES = "Esc, F12 or Ctrl+E"
 
 
+MAX_INPUT_AGE_S = 2.0
+"""An input event older than this by its own timestamp is taken to be on another clock."""
+
+
+def input_time(event) -> tuple[float, bool]:
+    """When an input event happened on ``time.monotonic()``'s clock, s, and whether that came
+    from the event itself. On X11 (xcb, also Xvfb) an event's ``timestamp()`` is the X server's
+    time: milliseconds of the system's monotonic clock modulo 2³², the clock of
+    ``time.monotonic()``. An age outside 0 … :data:`MAX_INPUT_AGE_S` means another clock (the
+    offscreen platform, a synthetic test event): then the handler's own time, said so."""
+    now = time.monotonic()
+    try:
+        stamp_ms = int(event.timestamp())
+    except (AttributeError, TypeError, ValueError):
+        return now, False
+    age_ms = (int(now * 1000.0) - stamp_ms) % (1 << 32)
+    if stamp_ms and age_ms <= MAX_INPUT_AGE_S * 1000.0:
+        return now - age_ms / 1000.0, True
+    return now, False
+
+
+def key_name(event) -> str:
+    """``Esc``, ``F12`` or ``Ctrl+E``: the e-stop key of ``event``."""
+    return {Qt.Key.Key_Escape: "Esc", Qt.Key.Key_F12: "F12", Qt.Key.Key_E: "Ctrl+E"}.get(
+        event.key(), str(event.key())
+    )
+
+
 def is_estop_key(event) -> bool:
     mods = event.modifiers() & ~Qt.KeyboardModifier.KeypadModifier
     return any(event.key() == k and mods == m for k, m in ESTOP_KEYS)
 
 
 class EStopGuard(QtCore.QObject):
-    """Calls ``on_estop()`` on an e-stop key anywhere in the application (installed on
-    construction; :meth:`remove` takes it off). ``last_key_t`` is the ``time.monotonic()`` of the
-    last key press it acted on."""
+    """Calls ``on_estop(input_t, source)`` on an e-stop key anywhere in the application
+    (installed on construction; :meth:`remove` takes it off): ``input_t`` is the key press's own
+    time on ``time.monotonic()``'s clock (None when the event's clock is not that one, see
+    :func:`input_time`), ``source`` e.g. ``key Esc``. ``last_key_t`` is the time of the last key
+    press it acted on; ``press_t`` the time of the last mouse press on ``button`` (the E-STOP
+    button, whose ``pressed`` signal carries no event)."""
 
-    def __init__(self, on_estop: Callable[[], None], parent: QtCore.QObject | None = None) -> None:
+    def __init__(
+        self,
+        on_estop: Callable[[float | None, str], None],
+        parent: QtCore.QObject | None = None,
+        button: QtWidgets.QAbstractButton | None = None,
+    ) -> None:
         super().__init__(parent)
         self.on_estop = on_estop
+        self.button = button
         self.last_key_t: float | None = None
+        self.press_t: tuple[float, bool] | None = None
         self.app = QtWidgets.QApplication.instance()
         self.app.installEventFilter(self)
 
@@ -45,6 +83,9 @@ class EStopGuard(QtCore.QObject):
 
     def eventFilter(self, obj: QtCore.QObject, event: QtCore.QEvent) -> bool:  # noqa: N802
         kind = event.type()
+        if kind == QtCore.QEvent.Type.MouseButtonPress and obj is self.button:
+            self.press_t = input_time(event)  # the button's pressed signal follows
+            return False
         if kind == QtCore.QEvent.Type.ShortcutOverride and is_estop_key(event):
             event.accept()  # no shortcut elsewhere may take the key: the press comes to us
             return True
@@ -52,9 +93,10 @@ class EStopGuard(QtCore.QObject):
             return False
         if event.isAutoRepeat():
             return True
-        self.last_key_t = time.monotonic()
+        t, own = input_time(event)
+        self.last_key_t = t
         try:
-            self.on_estop()
+            self.on_estop(t if own else None, f"key {key_name(event)}")
         except Exception:  # the e-stop path must not be broken by a display error
             log.exception("e-stop handler failed")
         self._close_overlays()

@@ -249,14 +249,19 @@ class RuntimeLink:
     def start(self, settings: dict[str, Any]) -> None:
         self.send("start " + json.dumps(settings, default=_json_default))
 
-    def estop(self) -> bool:
-        """``estop`` down the pipe in one system call (no Python buffering on the way; every
-        other command is flushed whole, so lines never interleave). False when the process is
-        gone or the pipe is closed."""
+    def estop(self, input_t: float | None = None, source: str = "") -> bool:
+        """``estop [INPUT_T SOURCE]`` down the pipe in one system call (no Python buffering on
+        the way; every other command is flushed whole, so lines never interleave): the input
+        event's ``time.monotonic()`` and what it was, for the session's event log. False when
+        the process is gone or the pipe is closed."""
         if not self.alive:
             return False
+        words = ["estop"]
+        if input_t is not None or source:
+            words.append("nan" if input_t is None else f"{input_t:.6f}")
+            words.append(" ".join(source.split()))
         try:
-            os.write(self.proc.stdin.fileno(), b"estop\n")
+            os.write(self.proc.stdin.fileno(), (" ".join(words).rstrip() + "\n").encode())
             return True
         except (OSError, ValueError):
             return False

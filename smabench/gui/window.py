@@ -115,7 +115,7 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self._refused_for_fields = False
         for f in self.fields.values():
             f.changed.connect(self._fields_edited)
-        self.guard = EStopGuard(self.estop, self)
+        self.guard = EStopGuard(self.estop, self, button=self.estop_button)
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.on_frame)
         self.timer.start(FRAME_MS)
@@ -445,11 +445,20 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self.link.send("stop")
             self.say("Stopping …")
 
-    def estop(self) -> None:
-        """E-STOP: the runtime first (output off, session aborted), then the display."""
-        self.estop_time = time.monotonic()
+    def estop(self, input_t: float | None = None, source: str = "") -> None:
+        """E-STOP: the runtime first (output off, session aborted), then the display.
+
+        ``input_t``: the key press's or click's own time (``time.monotonic()``, s) when known,
+        ``source`` what it was; the runtime logs both in the session's ``events.jsonl`` and the
+        banner's figure is measured from it."""
+        if not source:  # the button's pressed signal: the click's time from the guard
+            source = "button"
+            press = self.guard.press_t if getattr(self, "guard", None) is not None else None
+            if press is not None and press[1] and time.monotonic() - press[0] < 1.0:
+                input_t = press[0]
+        self.estop_time = time.monotonic() if input_t is None else input_t
         link = self.link
-        sent = link.estop() if link is not None else False
+        sent = link.estop(input_t, source) if link is not None else False
         self.last_estop = None
         was_lost = self.state == State.ERROR and self.readouts.why == "device lost"
         self._close_dialogs()
@@ -768,6 +777,9 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         if x.get("confirmed") and self.estop_time is not None:
             ms = (x["output_off_t"] - self.estop_time) * 1e3
             text = f"E-STOP: the driver reports its output off ({ms:.0f} ms after the press)."
+            if x.get("current_off_t") is not None:
+                ms_zero = (x["current_off_t"] - self.estop_time) * 1e3
+                text = text[:-2] + f"; current below 20 mA {ms_zero:.0f} ms after it)."
         else:
             text = ("E-STOP: the driver did not confirm output off. It switches itself off "
                     "when the computer stops talking to it; check the bench.")  # fmt: skip

@@ -39,7 +39,11 @@ CAL_GAIN_ONE = 32768  # Q15
 CAL_GAIN_RANGE = (0.5, 1.5)
 HEAT_RESISTANCE_RANGE_OHM = (0.05, 20.0)
 HEAT_MAX_TEMPERATURE_RANGE_C = (30.0, 400.0)
-BAUDRATE = 115200
+BAUDRATE = 115200  # nominal; the ATmega328P at 16 MHz runs 117 647 baud (U2X, UBRR 16: +2.1 %)
+DEVICE_BAUD = 117_647
+COMMAND_WINDOW_BYTES = 48
+"""Flow control (PROTOCOL.md): the host may have at most this many bytes of commands (whole
+frames, delimiters included) sent and not yet acknowledged; stop-and-wait always fits."""
 
 
 class MsgType(IntEnum):

@@ -676,11 +676,24 @@ static uint16_t control_step(uint16_t sp_ma)
     return out > (int32_t)DUTY_MAX ? DUTY_MAX : (uint16_t)out;
 }
 
+/* The wire voltage goes out only with a current it was measured at: its window's fast-path
+ * current within 3 % + 10 mA of the current in the same frame; else (the 8 ms after a step, or
+ * a window that saw the current move) "not available", never V at one current over I at another. */
+static uint16_t paired_voltage_dmv(void)
+{
+    uint16_t at = xadc_i_at[HAL_XADC_WIRE], now = s.current_ma;
+    if (s.voltage_dmv == U16_NONE || at == 0xFFFFu) {
+        return U16_NONE;
+    }
+    uint16_t hi = at > now ? at : now, lo = at > now ? now : at;
+    return (uint16_t)(hi - lo) <= (uint16_t)(hi / 32u + 10u) ? s.voltage_dmv : U16_NONE;
+}
+
 uint8_t core_telemetry(uint8_t *t)
 {
     put_u32(&t[0], hal_millis());
     put_u16(&t[4], s.current_ma);
-    put_u16(&t[6], s.voltage_dmv);
+    put_u16(&t[6], paired_voltage_dmv());
     put_u16(&t[8], (uint16_t)((uint32_t)s.duty * 65535u / HAL_PWM_TOP));
     put_u16(&t[10], (uint16_t)s.ambient_cdeg);
     put_u16(&t[12], s.flags);
@@ -760,6 +773,7 @@ void core_init(uint8_t was_watchdog_reset)
     s.model_c = was_watchdog_reset ? (float)s.heat.tmax_dc * 0.1f - (float)HEAT_REARM_K
                                    : ambient_c;
     last_rx_ms = hal_millis();
+    s.last_rx_ms = last_rx_ms;
     lease_start_ms = last_rx_ms;
     next_telem_ms = last_rx_ms;
     telem_restart = 0;
@@ -774,6 +788,7 @@ void core_poll(void)
     while (hal_uart_tx_free() >= ACK_MAX_WIRE && (c = hal_uart_read()) >= 0) {
         if (frame_rx_push(&rx, (uint8_t)c, &pkt)) {
             last_rx_ms = hal_millis(); /* every valid frame feeds the host watchdog */
+            s.last_rx_ms = last_rx_ms;
             handle(&pkt);
         }
     }
@@ -826,6 +841,11 @@ void core_control_tick(void)
         set_flag(FLAG_DISSIPATION, dissipating);
     }
     telemetry_tick(now);
+}
+
+void core_latch_fault(uint16_t fault)
+{
+    latch((uint16_t)(fault & FLAGS_LATCHED));
 }
 
 const core_state_t *core_state(void)

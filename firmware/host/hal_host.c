@@ -11,16 +11,20 @@ static uint8_t tx_buf[HOST_TX_SIZE];
 static uint32_t tx_head, tx_len;
 
 host_io_t *host_io(void) { return &io; }
-uint8_t *host_eeprom(void) { return eeprom; }
-uint32_t host_state_size(void) { return (uint32_t)sizeof(core_state_t); }
-uint32_t host_io_size(void) { return (uint32_t)sizeof(host_io_t); }
-
-void host_init(uint8_t was_watchdog_reset)
+uint8_t *host_eeprom(void)
 {
     if (!eeprom_init) {
         memset(eeprom, 0xFF, sizeof eeprom); /* a blank chip */
         eeprom_init = 1;
     }
+    return eeprom;
+}
+uint32_t host_state_size(void) { return (uint32_t)sizeof(core_state_t); }
+uint32_t host_io_size(void) { return (uint32_t)sizeof(host_io_t); }
+
+void host_init(uint8_t was_watchdog_reset)
+{
+    (void)host_eeprom();
     rx_head = rx_len = 0;
     tx_head = tx_len = 0;
     io.pwm_duty = 0;

@@ -282,10 +282,23 @@ class SimCurrentSource:
                 raise ValueError(f"SET_LIMITS refused: {ack.status_name}")
             self.limit_a, self.host_timeout_s = float(current_limit_a), float(host_timeout_s)
 
+    def set_lease(self, lease_s: float) -> None:
+        """SET_LEASE: how long a setpoint holds without a SET_CURRENT, s (0.02 … 5)."""
+        with self.plant.lock:
+            if self._command(*p.set_lease(lease_s)).status != p.Status.OK:
+                raise ValueError(f"lease {lease_s} s refused")
+            self.lease_s = float(lease_s)
+
     def clear_faults(self) -> p.Status:
         """CLEAR_FAULTS: ``FAULT_ACTIVE`` while a cause is still there (that fault stays)."""
         with self.plant.lock:
             return p.Status(self._command(*p.clear_faults()).status)
+
+    def ping(self) -> float:
+        """PING: feeds the host timeout, never the lease; the round trip, s (0: in process)."""
+        with self.plant.lock:
+            self._command(*p.ping())
+            return 0.0
 
     def latest(self) -> p.Telemetry | None:
         self.plant.sync()

@@ -12,7 +12,8 @@ Where it comes from (first that applies):
    ``make firmware-build`` and ``make test`` run) when it is newer than every source;
 3. otherwise the sources are compiled here with the system C compiler (``$CC`` or ``cc``) into a
    cache, ``$XDG_CACHE_HOME/smabench`` (``~/.cache/smabench``), named by a hash of the sources
-   and flags: a fresh clone or a ``pip install -e .`` needs nothing but a C compiler.
+   and flags: a fresh clone, ``pip install -e .`` or ``pip install .`` (the wheel ships the C
+   sources as ``smabench.firmware_src``) needs nothing but a C compiler.
 
 The core keeps its state in static variables (as on the MCU), so every device instance loads
 its own private copy of the library (:func:`load_private`: a copy under a unique name, unlinked
@@ -26,6 +27,7 @@ import _ctypes
 import contextlib
 import ctypes
 import hashlib
+import importlib.util
 import logging
 import os
 import shutil
@@ -37,7 +39,25 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
+
+
+def _firmware_dir() -> Path:
+    """The checkout's ``firmware/`` (a clone, ``pip install -e .``), else the sources a wheel
+    ships as ``smabench.firmware_src`` (``pip install .``)."""
+    checkout = Path(__file__).resolve().parents[2] / "firmware"
+    if (checkout / "core" / "core.c").is_file():
+        return checkout
+    try:
+        spec = importlib.util.find_spec("smabench.firmware_src")
+    except ModuleNotFoundError:
+        spec = None
+    for location in (spec.submodule_search_locations or []) if spec else []:
+        if (Path(location) / "core" / "core.c").is_file():
+            return Path(location)
+    return checkout
+
+
+FIRMWARE_DIR = _firmware_dir()
 CORE_DIR = FIRMWARE_DIR / "core"
 HOST_DIR = FIRMWARE_DIR / "host"
 BUILT_LIB = FIRMWARE_DIR / "build" / "host" / "libsmacore.so"

@@ -17,7 +17,9 @@ drives). The owner of the clock — the offline closed loop, a test — advances
   plant's slider position with its sensor noise; flagged NaN samples while a failure is
   injected.
 
-Fault injection for tests: :meth:`SimCurrentSource.inject_fault` (a latched device fault),
+Fault injection for tests: :meth:`SimCurrentSource.inject_fault` (a latched device fault, as an
+external protection reports it to the core), :attr:`SimCurrentSource.electrical` (the e-stop
+input, the NTC, the thermocouple, the external ADC),
 :meth:`SimCurrentSource.stall_telemetry` (a dead link: no frames), :meth:`SimDisplacementSensor.
 fail` (flagged samples), :meth:`SimPlant.break_wire` (the load falls freely and the wire is an
 open circuit: the driver latches OPEN_WIRE as the firmware does).

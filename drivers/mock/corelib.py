@@ -252,7 +252,7 @@ class Core:
 
     def tx_take(self) -> bytes:
         n = self._lib.host_tx_take(self._tx, len(self._tx))
-        return self._tx.raw[:n]
+        return ctypes.string_at(self._tx, n) if n else b""
 
     def telemetry_payload(self) -> bytes:
         out = ctypes.create_string_buffer(TELEMETRY_LEN)

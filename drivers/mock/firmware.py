@@ -29,8 +29,6 @@ from smabench.hardware import ELECTRICAL, LinearSink
 
 log = logging.getLogger(__name__)
 
-HARD_LIMIT_MA = 2500  # proto.h HARD_LIMIT_MA (IDENTIFY reports it)
-FW_VERSION = (2, 0, 0)  # proto.h FW_VERSION_* (IDENTIFY reports it)
 TICK_MS = 1  # core_control_tick() period
 
 _CS = ELECTRICAL["current_sense"]

@@ -6,7 +6,10 @@ No fixed sleeps: every wait is on a condition with a deadline."""
 from __future__ import annotations
 
 import logging
+import os
 import statistics
+import subprocess
+import sys
 import threading
 import time
 
@@ -738,3 +741,35 @@ def test_a_flood_of_setpoints_does_not_starve_the_receiver(cs):
     cs.set_current(0.25)
     cs.wait_telemetry(lambda t: t.setpoint_a == pytest.approx(0.25), 5.0)
     assert cs.counters().setpoints_superseded > 0
+
+
+# ------------------------------------------------------------------ the core behind the stand-ins
+@pytest.mark.slow  # compiles the core (a few seconds)
+def test_the_stand_ins_build_the_core_from_its_sources_when_no_build_exists(tmp_path):
+    """What a fresh clone or a ``pip install .`` does on first use: the C sources compiled with
+    cc into a cache file, loaded, the firmware answering through it."""
+    from smabench.drivers.mock import corelib
+
+    out = tmp_path / "libsmacore.so"
+    corelib._compile(out)
+    probe = (
+        "from smabench.drivers import protocol as p\n"
+        "from smabench.drivers.mock.firmware import MockFirmware\n"
+        "ack = p.decode_frame(MockFirmware().receive(p.encode_frame(5, *p.identify())))\n"
+        "print(p.Ack.from_payload(ack.payload))\n"
+    )
+    env = {**os.environ, "SMABENCH_CORELIB": str(out)}
+    done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert "status=0" in done.stdout and "SMA-CD328-MOCK" in done.stdout, done.stdout
+
+
+def test_two_stand_ins_in_one_process_share_no_state():
+    """Each device loads its own copy of the core (its state is static, as on the MCU)."""
+    a, b = MockFirmware(0.0), MockFirmware(0.0)
+    a.receive(p.encode_frame(0, *p.set_current(1.2)))
+    b.receive(p.encode_frame(0, *p.set_limits(1.0, 0.5)))
+    assert (a.setpoint_ma, a.state.limit_ma) == (1200, 2500)
+    assert (b.setpoint_ma, b.state.limit_ma, b.state.host_timeout_ms) == (0, 1000, 500)
+    a.eeprom[5] = 0x42
+    assert b.eeprom[5] == 0xFF  # a blank chip each

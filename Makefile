@@ -48,7 +48,7 @@ test-python: venv
 
 # the emulator tests in test-python need the .elf, the simavr harness and the watchdog image
 firmware-build: sysdeps
-	$(MAKE) -C firmware elf sim wdt-elf
+	$(MAKE) -C firmware elf sim wdt-elf host-lib
 
 # C host tests (ASan/UBSan), the frame-decoder fuzz run, the firmware smoke test in simavr
 test-firmware: sysdeps

@@ -39,7 +39,18 @@ CAL_GAIN_ONE = 32768  # Q15
 CAL_GAIN_RANGE = (0.5, 1.5)
 HEAT_RESISTANCE_RANGE_OHM = (0.05, 20.0)
 HEAT_MAX_TEMPERATURE_RANGE_C = (30.0, 400.0)
-BAUDRATE = 115200
+BAUDRATE = 115200  # nominal; the ATmega328P at 16 MHz runs 117 647 baud (U2X, UBRR 16: +2.1 %)
+DEVICE_BAUD = 117_647
+READY_AFTER_RESET_S = 0.005
+"""The application listens this long after it starts (power-on, watchdog; measured < 1 ms)."""
+READY_AFTER_OPEN_S = 2.0
+"""Opening the port of an Arduino Nano resets it (DTR): optiboot flashes the LED 3 times and
+waits for avrdude (1.40 s in the emulator; its 1 s watchdog runs on a 128 kHz RC oscillator,
+±10 % and more), then its watchdog starts the application; send from this long after the
+open (PROTOCOL.md "Readiness"; measured in the emulator by test_firmware_emulated)."""
+COMMAND_WINDOW_BYTES = 48
+"""Flow control (PROTOCOL.md): the host may have at most this many bytes of commands (whole
+frames, delimiters included) sent and not yet acknowledged; stop-and-wait always fits."""
 
 
 class MsgType(IntEnum):

@@ -5,24 +5,21 @@ devices bring the shared :class:`SimPlant` up to that time whenever they are loo
 plant is stepped in sub-steps of ``substep_s``, 1 ms, with the current the simulated driver
 drives). The owner of the clock — the offline closed loop, a test — advances it.
 
-- :class:`SimCurrentSource` (a :class:`~smabench.drivers.base.CurrentSourceDevice`) behaves as
-  the mock firmware (:mod:`smabench.drivers.mock.firmware`) on the reference driver: the
-  current is what the linear sink delivers (:class:`smabench.hardware.LinearSink`: the clamped
-  setpoint through the PWM filter's two poles, limited by the compliance); output off at start,
-  on ``enable(False)``, on ``make_safe``, on a latched fault, when no command came within the
-  host timeout and when no SET_CURRENT renewed the setpoint within the lease (0.25 s each, of
-  simulated time); open wire latched as the firmware does. Telemetry every
-  ``telemetry_period_s`` (10 ms, as the bench asks for): the mean current and Kelvin wire
-  voltage over the frame (an oversampled measurement; the voltage from the plant's
-  resistance), the plant's ambient, flags, the setpoint — packed and unpacked through the
-  protocol's TELEMETRY payload, so it has the resolution of a real frame. Not modelled: the
-  firmware's energy budget (``wire_model_c`` is reported empty), the thermocouple, the e-stop
-  input.
+- :class:`SimCurrentSource` (a :class:`~smabench.drivers.base.CurrentSourceDevice`) runs the
+  REAL firmware core (``firmware/core/core.c`` built for the host, :mod:`smabench.drivers.mock.
+  firmware`) on the simulated clock: every command is a frame into the core and its ACK comes
+  back through the codec; the core's 1 ms control tick runs with the wire current the reference
+  sink delivers (:class:`smabench.hardware.LinearSink`) into the plant's resistance, and its
+  telemetry frames are decoded. So the lease, the host timeout (0.25 s each of simulated time),
+  the latched faults (open wire, the energy budget's over-temperature, …), the clamps and the
+  ACK codes are the firmware's own, not a re-implementation.
 - :class:`SimDisplacementSensor` (a :class:`~smabench.drivers.base.DisplacementDevice`): the
   plant's slider position with its sensor noise; flagged NaN samples while a failure is
   injected.
 
-Fault injection for tests: :meth:`SimCurrentSource.inject_fault` (a latched device fault),
+Fault injection for tests: :meth:`SimCurrentSource.inject_fault` (a latched device fault, as an
+external protection reports it to the core), :attr:`SimCurrentSource.electrical` (the e-stop
+input, the NTC, the thermocouple, the external ADC),
 :meth:`SimCurrentSource.stall_telemetry` (a dead link: no frames), :meth:`SimDisplacementSensor.
 fail` (flagged samples), :meth:`SimPlant.break_wire` (the load falls freely and the wire is an
 open circuit: the driver latches OPEN_WIRE as the firmware does).
@@ -30,20 +27,14 @@ open circuit: the driver latches OPEN_WIRE as the firmware does).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import threading
 
 from smabench.drivers import protocol as p
 from smabench.drivers.displacement import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
-from smabench.drivers.mock.firmware import (
-    FW_VERSION,
-    HARD_LIMIT_MA,
-    OPEN_WIRE_MA,
-    OPEN_WIRE_MS,
-    OPEN_WIRE_SET_MA,
-)
-from smabench.hardware import ELECTRICAL, LinearSink
+from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.physics.effects import Effects
 from smabench.physics.plant import Plant, PlantState
 from smabench.physics.wire import PAPER_WIRE, Wire
@@ -59,7 +50,7 @@ __all__ = [
     "SimPlant",
 ]
 
-DEVICE_NAME = "SMA-CD328-SIM"
+POWERED_BEFORE_S = 0.2  # the simulated driver runs this long before the plant's time 0
 G_MM_S2 = 9810.0  # free fall of a load whose wire broke, mm/s²
 FALL_STOP_MM = 50.0  # the falling load stops this far below where it was (the frame's end stop)
 
@@ -143,7 +134,12 @@ class SimPlant:
 
 
 class SimCurrentSource:
-    """The current driver, simulated (see the module docstring). Units: A, s."""
+    """The current driver, simulated: the real firmware core on the simulated clock.
+
+    Every command goes to the core as a frame and its ACK comes back through the frame codec;
+    the core's control tick runs every 1 ms of simulated time (the plant's sub-steps end on the
+    ticks) with the wire current the sink delivers; telemetry frames come out of the core and are
+    decoded. Units: A, s."""
 
     def __init__(
         self,
@@ -153,114 +149,112 @@ class SimCurrentSource:
         host_timeout_s: float = p.HOST_TIMEOUT_DEFAULT_S,
         lease_s: float = p.LEASE_DEFAULT_S,
         current_limit_a: float | None = None,
+        electrical: Electrical | None = None,
+        powered_s: float = POWERED_BEFORE_S,
     ) -> None:
+        """``powered_s``: how long the device has been running when the clock reads the plant's
+        time (a bench's driver is powered before a session: its NTC has been read, 100 ms)."""
         lo, hi = p.TELEMETRY_PERIOD_RANGE_S
         if not lo <= telemetry_period_s <= hi:
             raise ValueError(f"telemetry period must be in {lo} … {hi} s")
         self.plant = plant
         self.clock = plant.clock
-        self.sink = LinearSink()
         self.telemetry_period_s = telemetry_period_s
-        self.host_timeout_s = host_timeout_s
-        self.lease_s = lease_s
-        self.hard_limit_a = HARD_LIMIT_MA / 1000.0
-        self.limit_a = self.hard_limit_a if current_limit_a is None else float(current_limit_a)
-        self.info = p.DeviceInfo(p.PROTOCOL_VERSION, FW_VERSION, self.hard_limit_a, DEVICE_NAME)
-        self.enabled = False
-        self.setpoint_a = 0.0
-        self.current_a = 0.0  # flowing now
-        self.flags = p.Flag(0)
-        self.commands = 0  # commands received (each renews the host timeout)
-        self._last_command_s = self.clock.now()
-        self._lease_start_s = self.clock.now()
-        self._open_s = 0.0
-        self._stalled = False
-        self._frame_t0 = plant.t_s
-        self._next_frame_s = plant.t_s + telemetry_period_s
-        self._sum_i = self._sum_v = 0.0
+        self.electrical = electrical or Electrical()  # the inputs besides the wire
+        self._t0_s = plant.t_s - powered_s  # device time 0 (the core's reset)
+        self.fw = MockFirmware(0.0)
+        state = plant.state
+        self.fw.tick(
+            powered_s * 1000.0,
+            dataclasses.replace(
+                self.electrical, resistance_ohm=state.resistance_ohm, ambient_c=state.ambient_c
+            ),
+        )
+        self._rx = p.FrameReceiver()
+        self._seq = 0
         self._latest: p.Telemetry | None = None
+        self._stalled = False
+        self.commands = 0  # host commands through the device API (each feeds the host timeout)
+        self.current_a = 0.0  # flowing now (device side)
+        ack = self._call(*p.identify())
+        self.info = p.DeviceInfo.from_data(ack.data)
+        self.hard_limit_a = self.info.hard_limit_a
+        limit_a = self.hard_limit_a if current_limit_a is None else float(current_limit_a)
+        for cmd in (
+            p.set_limits(limit_a, host_timeout_s),
+            p.set_lease(lease_s),
+            p.set_telemetry(telemetry_period_s),
+        ):
+            if self._call(*cmd).status != p.Status.OK:
+                raise ValueError(f"the simulated driver refused {cmd[0].name}")
+        self.host_timeout_s, self.lease_s, self.limit_a = host_timeout_s, lease_s, limit_a
         plant.attach(self)
 
     # ------------------------------------------------------------------ device side (plant)
-    def limit_step(self, t_s: float, h: float) -> float:
-        """Shorten a plant sub-step so that it ends on the next telemetry frame."""
-        return max(min(h, self._next_frame_s - t_s), 1e-9)
+    def _device_ms(self, t_s: float) -> float:
+        return (t_s - self._t0_s) * 1000.0
 
-    def _off(self) -> None:
-        self.enabled = False
-        self.current_a = 0.0
-        self.sink.state.pole1_a = self.sink.state.pole2_a = 0.0  # the enable line clamps
+    def limit_step(self, t_s: float, h: float) -> float:
+        """Shorten a plant sub-step so that it ends on the core's next 1 ms tick."""
+        next_tick_s = self._t0_s + (self.fw.core_ms + 1) / 1000.0
+        return max(min(h, next_tick_s - t_s), 1e-9)
 
     def advance(self, h: float) -> float:
-        """The current the sink delivers over the next ``h`` s, A."""
-        if not self.enabled:
-            self._off()
-            return 0.0
-        counts = min(self.setpoint_a, self.limit_a) / ELECTRICAL.setpoint_a_per_count
-        r_wire = 1e9 if self.plant.broken else self.plant.state.resistance_ohm
-        self.current_a = self.sink.step(counts, r_wire, h)
+        """The current the sink delivers over the next ``h`` s, A (set at the last tick)."""
+        self.current_a = self.fw.current_ma / 1000.0
         return self.current_a
 
     def after_step(self, t_s: float, h: float, state: PlantState) -> None:
-        """Device bookkeeping after a plant sub-step ending at ``t_s``: host timeout, lease,
-        open-wire detection, telemetry frames."""
-        if self.enabled and t_s - self._last_command_s >= self.host_timeout_s:
-            log.info("simulated driver: host timeout at %.3f s, output off", t_s)
-            self._off()
-            self.flags |= p.Flag.HOST_TIMEOUT
-        if self.enabled and self.setpoint_a > 0 and t_s - self._lease_start_s >= self.lease_s:
-            log.info("simulated driver: setpoint lease expired at %.3f s, output off", t_s)
-            self._off()
-            self.setpoint_a = 0.0
-            self.flags |= p.Flag.LEASE_EXPIRED
-        set_ma = min(self.setpoint_a, self.limit_a) * 1000.0
-        if self.enabled and set_ma >= OPEN_WIRE_SET_MA and self.current_a * 1000.0 < OPEN_WIRE_MA:
-            self._open_s += h
-            if self._open_s * 1000.0 >= OPEN_WIRE_MS:
-                self._latch(p.Flag.OPEN_WIRE)
-        else:
-            self._open_s = 0.0
-        self._sum_i += self.current_a * h
-        self._sum_v += state.voltage_v * h
-        if t_s >= self._next_frame_s - 1e-9:
-            span = max(t_s - self._frame_t0, 1e-12)
-            if not self._stalled:
-                self._latest = self._frame(t_s, self._sum_i / span, self._sum_v / span, state)
-            self._frame_t0 = t_s
-            self._next_frame_s = t_s + self.telemetry_period_s
-            self._sum_i = self._sum_v = 0.0
-
-    def _frame(self, t_s: float, current_a: float, voltage_v: float, state: PlantState):
-        flags = self.flags | (p.Flag.ENABLED if self.enabled else 0)
-        if self.enabled and self.setpoint_a >= self.limit_a > 0:
-            flags |= p.Flag.LIMIT_ACTIVE
-        counts = min(self.setpoint_a, self.limit_a) / ELECTRICAL.setpoint_a_per_count
-        current_a = max(current_a, 0.0)
-        tel = p.Telemetry(
-            t_ms=int(round(t_s * 1000.0)),
-            current_a=current_a,
-            voltage_v=max(voltage_v, 0.0),
-            duty=min(1.0, counts / ELECTRICAL["setpoint"]["pwm_top"]) if self.enabled else 0.0,
+        """A core tick when the sub-step ended on one: the plant's wire as the sink's load."""
+        wire = dataclasses.replace(
+            self.electrical,
+            resistance_ohm=state.resistance_ohm,
             ambient_c=state.ambient_c,
-            flags=p.Flag(flags),
-            setpoint_a=self.setpoint_a,
-            crc_errors=0,
-            frame_errors=0,
-            precise_current_a=current_a,
-            supply_v=self.sink.supply_at_terminals_v(current_a),
-        )  # through the frame's payload: the resolution a real frame has
-        return p.Telemetry.from_payload(tel.to_payload(), host_time=t_s)
+            open_wire=self.plant.broken or self.electrical.open_wire,
+        )
+        self._frames(self.fw.tick(self._device_ms(t_s), wire), t_s)
+        self.current_a = self.fw.current_ma / 1000.0
 
-    def _latch(self, flag: p.Flag) -> None:
-        log.warning("simulated driver: fault latched: %s", flag.name)
-        self.flags |= flag
-        self._off()
+    def _frames(self, data: bytes, t_s: float) -> list[p.Packet]:
+        """Decode what the core sent: telemetry is kept, the rest returned."""
+        out = []
+        for pkt in self._rx.feed(data):
+            if pkt.type == p.MsgType.TELEMETRY:
+                if not self._stalled:
+                    self._latest = p.Telemetry.from_payload(pkt.payload, host_time=t_s)
+            else:
+                out.append(pkt)
+        return out
+
+    def _call(self, type_: int, payload: bytes) -> p.Ack:
+        """One command through the core; its ACK."""
+        seq = self._seq
+        self._seq = (seq + 1) & 0xFF
+        now = self.plant.t_s
+        for pkt in self._frames(self.fw.receive(p.encode_frame(seq, type_, payload)), now):
+            ack = p.Ack.from_payload(pkt.payload)
+            if pkt.type == p.MsgType.ACK and ack.seq == seq:
+                self.current_a = self.fw.current_ma / 1000.0
+                return ack
+        raise RuntimeError(f"the firmware core did not acknowledge {p.MsgType(type_).name}")
 
     # ------------------------------------------------------------------ host side
-    def _command(self) -> None:
+    def _command(self, type_: int, payload: bytes) -> p.Ack:
         self.plant.sync()  # the old state holds up to now
         self.commands += 1
-        self._last_command_s = self.clock.now()
+        return self._call(type_, payload)
+
+    @property
+    def enabled(self) -> bool:
+        return self.fw.enabled
+
+    @property
+    def flags(self) -> p.Flag:
+        return self.fw.flags
+
+    @property
+    def setpoint_a(self) -> float:
+        return self.fw.setpoint_ma / 1000.0
 
     def connect(self) -> p.DeviceInfo:
         return self.info
@@ -269,14 +263,9 @@ class SimCurrentSource:
         """Output on/off; on is refused while a fault is latched
         (:class:`SimDeviceFaultError`)."""
         with self.plant.lock:
-            self._command()
-            if on:
-                if self.flags & p.LATCHED_FAULTS:
-                    raise SimDeviceFaultError(f"ENABLE refused: {p.fault_text(self.flags)}")
-                self.flags &= ~(p.Flag.HOST_TIMEOUT | p.Flag.LEASE_EXPIRED)
-                self.enabled = True
-            else:  # as the firmware: output off, the setpoint kept
-                self._off()
+            ack = self._command(*p.enable(on))
+            if ack.status == p.Status.FAULT_ACTIVE:
+                raise SimDeviceFaultError(f"ENABLE refused: {p.fault_text(self.fw.flags)}")
 
     def set_current(self, current_a: float) -> p.Status:
         """Current setpoint, A; ValueError outside 0 … the hard limit; above the active limit
@@ -286,23 +275,32 @@ class SimCurrentSource:
                 f"current {current_a} A outside 0 … {self.hard_limit_a} A (device hard limit)"
             )
         with self.plant.lock:
-            self._command()
-            self._lease_start_s = self.clock.now()
-            self.setpoint_a = min(round(float(current_a), 3), self.limit_a)  # mA on the wire
-            return p.Status.CLAMPED if current_a > self.limit_a + 1e-9 else p.Status.OK
+            return p.Status(self._command(*p.set_current(current_a)).status)
 
     def set_limits(self, current_limit_a: float, host_timeout_s: float) -> None:
-        lo, hi = p.HOST_TIMEOUT_RANGE_S
-        if current_limit_a > self.hard_limit_a + 1e-9 or not lo <= host_timeout_s <= hi:
-            raise ValueError("limit above the hard limit or host timeout out of range")
         with self.plant.lock:
-            self._command()
+            ack = self._command(*p.set_limits(current_limit_a, host_timeout_s))
+            if ack.status != p.Status.OK:
+                raise ValueError(f"SET_LIMITS refused: {ack.status_name}")
             self.limit_a, self.host_timeout_s = float(current_limit_a), float(host_timeout_s)
 
-    def clear_faults(self) -> None:
+    def set_lease(self, lease_s: float) -> None:
+        """SET_LEASE: how long a setpoint holds without a SET_CURRENT, s (0.02 … 5)."""
         with self.plant.lock:
-            self._command()
-            self.flags = p.Flag(0)
+            if self._command(*p.set_lease(lease_s)).status != p.Status.OK:
+                raise ValueError(f"lease {lease_s} s refused")
+            self.lease_s = float(lease_s)
+
+    def clear_faults(self) -> p.Status:
+        """CLEAR_FAULTS: ``FAULT_ACTIVE`` while a cause is still there (that fault stays)."""
+        with self.plant.lock:
+            return p.Status(self._command(*p.clear_faults()).status)
+
+    def ping(self) -> float:
+        """PING: feeds the host timeout, never the lease; the round trip, s (0: in process)."""
+        with self.plant.lock:
+            self._command(*p.ping())
+            return 0.0
 
     def latest(self) -> p.Telemetry | None:
         self.plant.sync()
@@ -321,29 +319,29 @@ class SimCurrentSource:
         return not self._stalled
 
     def make_safe(self) -> bool:
-        """Output off now; idempotent, never raises; True (the simulated device always
-        confirms)."""
+        """Output off now (ENABLE 0, setpoint 0); idempotent, never raises; True when the core
+        confirmed it."""
         try:
             with self.plant.lock:
                 self.plant.sync()
-                self._off()
-                self.setpoint_a = 0.0
-            return True
+                ok = self._call(*p.enable(False)).status == p.Status.OK
+                self._call(*p.set_current(0.0))
+                return ok and not self.fw.enabled
         except Exception:  # never raises: this is the emergency path
             log.exception("simulated make_safe")
-            self.enabled = False
-            self.current_a = 0.0
-            return True
+            return False
 
     def close(self) -> None:
         self.make_safe()
 
     # ------------------------------------------------------------------ fault injection
     def inject_fault(self, flag: p.Flag = p.Flag.OVERCURRENT) -> None:
-        """Latch a device fault now (output off, reported in the next frame)."""
+        """Latch a device fault now, as an external protection would report it to the core
+        (output off at once, reported in the next frame)."""
         with self.plant.lock:
             self.plant.sync()
-            self._latch(flag)
+            self.fw.latch_fault(flag)
+            self.current_a = 0.0
 
     def stall_telemetry(self, stalled: bool = True) -> None:
         """A dead link: no telemetry frames while stalled (the device itself keeps running)."""

@@ -10,7 +10,13 @@ Implementations (the ``rig`` fixture):
 - ``emulated``: the same clients against the real AVR firmware in simavr (skipped when the
   firmware is not built, except under CI).
 
-Contract: ``make_safe`` is idempotent, never raises (also before connect and after close) and
+Contract: the setpoint lease expires while other frames keep the link alive (output off,
+``LEASE_EXPIRED``, setpoint 0, no host timeout); the host timeout turns the output off when the
+host falls silent; a latched fault (the e-stop input) turns the output off, refuses ENABLE and
+survives CLEAR_FAULTS while its cause is there, and clears once it is gone. Timings from the
+device's own telemetry clock (``t_ms``), bounded from the side a late host read cannot move.
+Since the stand-ins run the real firmware core, these are the firmware's behaviour on every rig.
+``make_safe`` is idempotent, never raises (also before connect and after close) and
 the output is off afterwards — checked on the device side, the current the plant receives;
 ``set_current`` is reflected in the telemetry and on the device side; ``enable(False)`` turns
 the output off; out-of-range setpoints are refused; sensor samples carry a finite position or
@@ -21,6 +27,7 @@ the suite holds on a busy machine.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -50,6 +57,11 @@ class Rig:
     unconnected_source: Callable[[], CurrentSourceDevice]
     wait_s: float  # deadline for a condition (simulated s for sim, wall s otherwise)
     poll: Callable[[], None]  # let time pass a little
+    estop: Callable[[bool], None]  # the device's e-stop input (a latched fault's cause)
+    silence: Callable[[bool], None]  # the host sends nothing at all (no keepalive) while True
+    keepalive: Callable[[], None]  # a frame that is not SET_CURRENT (the link thread's PING)
+    clear_faults: Callable[[], bool]  # CLEAR_FAULTS; False: refused, a cause is still there
+    refused: type[Exception]  # what enable(True) raises while a fault is latched
 
     def wait(self, condition: Callable[[], bool]) -> bool:
         """Poll ``condition`` until it holds or the deadline passes; returns whether it held."""
@@ -64,25 +76,37 @@ class Rig:
 
 
 def _sim_rig() -> Iterator[Rig]:
-    from smabench.drivers.sim import SimBench, SimCurrentSource, SimPlant
+    from smabench.drivers.sim import SimBench, SimCurrentSource, SimDeviceFaultError, SimPlant
     from smabench.physics.plant import Plant
 
     bench = SimBench(2.0)
     clock = bench.clock
+    src = bench.source
 
     def unconnected():
         return SimCurrentSource(SimPlant(Plant(2.0), clock))
 
+    def estop(on: bool) -> None:
+        src.electrical.estop = on
+
+    silent = [False]
+
+    def keepalive() -> None:
+        if not silent[0]:
+            src.ping()
+
     # 0.2 s of simulated time: inside the device's 0.25 s host timeout (no keepalive here)
     yield Rig(
-        "sim", bench.source, bench.sensor, lambda: bench.state.current_a,
+        "sim", src, bench.sensor, lambda: bench.state.current_a,
         lambda: bench.sensor.fail(1), unconnected, 0.2, lambda: clock.sleep(0.005),
-        clock.now,
+        estop, lambda on: silent.__setitem__(0, on), keepalive,
+        lambda: src.clear_faults() == p.Status.OK,
+        SimDeviceFaultError, clock.now,
     )  # fmt: skip
 
 
 def _mock_rig(firmware: str) -> Iterator[Rig]:
-    from smabench.drivers.current_source import CurrentSource
+    from smabench.drivers.current_source import CommandRejected, CurrentSource, DeviceFault
     from smabench.drivers.displacement import DisplacementSensor
     from smabench.drivers.mock.bench import SENSOR_MAP, SIM_BIN, SIM_ELF, MockBench
 
@@ -94,6 +118,28 @@ def _mock_rig(firmware: str) -> Iterator[Rig]:
     ports = bench.start()
     source = CurrentSource(ports.driver)
     sensor = DisplacementSensor(SENSOR_MAP, ports.sensor_tcp, timeout_s=0.5, retries=0)
+    estop_on = [False]
+    if bench.device is not None:  # the Python stand-in: the plant's wire plus the e-stop input
+        couple = bench.device.on_step
+
+        def on_step(t_ms, dt_s, fw):
+            return dataclasses.replace(couple(t_ms, dt_s, fw), estop=estop_on[0])
+
+        bench.device.on_step = on_step
+
+    def estop(on: bool) -> None:
+        estop_on[0] = on
+        if bench.emulated is not None:
+            bench.emulated._send(f"ESTOP {int(on)}")  # the harness's e-stop pin
+
+    def clear_faults() -> bool:
+        try:
+            source.clear_faults()
+        except CommandRejected as exc:
+            assert exc.status == p.Status.FAULT_ACTIVE, exc
+            return False
+        return True
+
     try:
         source.connect()
         source.clear_faults()
@@ -102,6 +148,7 @@ def _mock_rig(firmware: str) -> Iterator[Rig]:
             firmware, source, sensor, lambda: bench.link.state.current_a,
             lambda: bench.server.fail_with_exception(4, 1),
             lambda: CurrentSource(ports.driver), 3.0, lambda: time.sleep(0.005),
+            estop, source.pause_keepalive, lambda: None, clear_faults, DeviceFault,
         )  # fmt: skip
     finally:
         source.close()
@@ -211,3 +258,81 @@ def test_sensor_samples_carry_finite_positions_or_invalid_flags(rig):
     if rig.name != "sim":
         assert failed.flags & FLAG_EXCEPTION
     assert rig.wait(lambda: math.isfinite(rig.sensor.read_or_flag().position_mm))
+
+
+# ----------------------------------------------------------------------------- safety contract
+LEASE_S = p.LEASE_DEFAULT_S  # every rig runs the device's default lease and host timeout
+HOST_TIMEOUT_S = p.HOST_TIMEOUT_DEFAULT_S
+FRAME_S = 0.01  # the telemetry period every rig asks for
+
+
+def _frame(rig: Rig, pred) -> p.Telemetry:
+    """The first telemetry frame seen that satisfies ``pred`` (keeping the link as it is)."""
+    seen: list[p.Telemetry] = []
+
+    def check() -> bool:
+        rig.keepalive()
+        t = rig.source.latest()
+        if t is not None and pred(t):
+            seen.append(t)
+        return bool(seen)
+
+    assert rig.wait(check), f"{rig.name}: no such frame; latest {rig.source.latest()}"
+    return seen[0]
+
+
+def test_the_lease_expires_while_the_link_is_kept_alive(rig):
+    rig.source.enable(True)
+    before = _frame(rig, lambda t: True)  # device time no later than the SET_CURRENT
+    rig.source.set_current(SETPOINT_A)
+    first = _frame(rig, lambda t: t.setpoint_a > 0)  # no earlier than the SET_CURRENT
+    rig.wait_s = max(rig.wait_s, 2 * LEASE_S)
+    off = _frame(rig, lambda t: bool(t.flags & p.Flag.LEASE_EXPIRED))
+    assert not off.flags & p.Flag.ENABLED and not off.flags & p.Flag.HOST_TIMEOUT, off
+    assert off.setpoint_a == 0.0 and off.current_a < 0.005, off
+    # device clock: off one lease after the SET_CURRENT, though other frames went on
+    assert off.t_ms - before.t_ms >= LEASE_S * 1e3 - 1, (before.t_ms, off.t_ms)
+    assert off.t_ms - first.t_ms <= (LEASE_S + FRAME_S) * 1e3 + 1, (first.t_ms, off.t_ms)
+    assert rig.wait(lambda: rig.wire_current_a() == 0.0)  # and on the device side
+    rig.source.enable(True)  # no fault: ENABLE is accepted, the event is cleared
+    assert _frame(rig, lambda t: bool(t.flags & p.Flag.ENABLED)).flags & p.Flag.LEASE_EXPIRED == 0
+
+
+def test_the_host_timeout_turns_the_output_off_when_the_host_falls_silent(rig):
+    rig.source.set_lease(5.0)  # the lease would end it too: here only the host timeout may
+    _heat(rig)
+    rig.silence(True)
+    try:
+        start = _frame(rig, lambda t: True)  # device time no earlier than the silence began
+        rig.wait_s = max(rig.wait_s, 2 * HOST_TIMEOUT_S)
+        off = _frame(rig, lambda t: bool(t.flags & p.Flag.HOST_TIMEOUT))
+    finally:
+        rig.silence(False)
+    assert not off.flags & p.Flag.ENABLED and off.current_a < 0.005, off
+    assert off.t_ms - start.t_ms <= (HOST_TIMEOUT_S + FRAME_S) * 1e3 + 1, (start.t_ms, off.t_ms)
+    assert rig.wait(lambda: rig.wire_current_a() == 0.0)
+    rig.source.enable(True)  # an event, not a latched fault: ENABLE is accepted again
+    rig.source.make_safe()
+
+
+def test_a_latched_fault_holds_until_its_cause_is_gone_and_it_is_cleared(rig):
+    _heat(rig)
+    rig.estop(True)
+    try:
+        t = _frame(rig, lambda t: bool(t.flags & p.Flag.ESTOP))
+        assert not t.flags & p.Flag.ENABLED, t
+        assert rig.wait(lambda: rig.wire_current_a() == 0.0)
+        with pytest.raises(rig.refused):
+            rig.source.enable(True)
+        assert rig.clear_faults() is False  # the cause is still there: the fault stays
+        assert _frame(rig, lambda t: True).flags & p.Flag.ESTOP
+    finally:
+        rig.estop(False)
+    # the cause is gone but nothing was cleared: still latched, still refused
+    assert rig.wait(lambda: rig.source.latest().flags & p.Flag.ESTOP)
+    with pytest.raises(rig.refused):
+        rig.source.enable(True)
+    assert rig.wait(rig.clear_faults)
+    assert not _frame(rig, lambda t: not t.flags & p.Flag.ESTOP).flags & p.LATCHED_FAULTS
+    _heat(rig)  # and the output works again
+    rig.source.make_safe()

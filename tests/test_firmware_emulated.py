@@ -65,9 +65,9 @@ class Harness:
     microcontroller, which host load does not slow: SCHED_FIFO where allowed, as the mock
     bench runs it (:func:`~smabench.drivers.mock.bench.realtime_child`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, *args: str) -> None:
         self.proc = subprocess.Popen(
-            [str(SIM), str(ELF)],
+            [str(SIM), *(args or (str(ELF),))],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -79,6 +79,7 @@ class Harness:
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
         self.stderr: list[str] = []
+        self._err_cond = threading.Condition()
         threading.Thread(target=self._read_err, daemon=True).start()
         line = self._expect("PTY ", 30.0)
         self.port_name = line.split(None, 1)[1].strip()
@@ -91,7 +92,28 @@ class Harness:
     def _read_err(self) -> None:
         assert self.proc.stderr is not None
         for line in self.proc.stderr:
-            self.stderr.append(line)
+            with self._err_cond:
+                self.stderr.append(line)
+                self._err_cond.notify_all()
+
+    def wait_stderr(self, text: str, start: int, timeout_s: float = WAIT_S) -> int:
+        """Index of the first stderr line from ``start`` on that contains ``text``."""
+        deadline = time.monotonic() + timeout_s
+        with self._err_cond:
+            while True:
+                for i in range(start, len(self.stderr)):
+                    if text in self.stderr[i]:
+                        return i
+                left = deadline - time.monotonic()
+                assert left > 0, f"harness never said {text!r}: {''.join(self.stderr[-10:])}"
+                self._err_cond.wait(left)
+
+    def wait_device_ms(self, t_ms: float) -> None:
+        """Until the AVR has run ``t_ms`` since power-on (harness time)."""
+        deadline = time.monotonic() + WAIT_S
+        while self.state()["t_ms"] < t_ms:
+            assert time.monotonic() < deadline, f"the AVR did not reach {t_ms} ms"
+            time.sleep(0.001)
 
     def _expect(self, prefix: str, timeout_s: float) -> str:
         deadline = time.monotonic() + timeout_s
@@ -270,14 +292,10 @@ class RawDevice:
 @pytest.fixture
 def raw(sim):
     dev = RawDevice(sim.port_name)
-    deadline = time.monotonic() + 20.0  # the firmware may still be booting: ask until it answers
-    while True:
-        try:
-            assert S(dev.command(*p.identify(), timeout_s=0.5).status) == S.OK
-            break
-        except AssertionError:
-            if time.monotonic() > deadline:
-                raise
+    # PROTOCOL.md "Readiness": the firmware listens from p.READY_AFTER_RESET_S after reset (no
+    # bootloader here: the harness powers the AVR on when it starts)
+    sim.wait_device_ms(p.READY_AFTER_RESET_S * 1e3)
+    assert S(dev.command(*p.identify(), timeout_s=WAIT_S).status) == S.OK
     assert dev.status(*p.set_limits(2.5, 5.0)) == S.OK  # host timeout: a busy host is no fault here
     assert dev.status(*p.set_telemetry(TELEMETRY_MS / 1e3)) == S.OK
     yield dev
@@ -595,44 +613,30 @@ OPTIBOOT = REPO / "firmware/build/boot/optiboot_atmega328.hex"
 def test_watchdog_reset_reported_behind_optiboot():
     """optiboot clears MCUSR before it starts the application, and leaves its own wait through a
     watchdog reset. The application must report WATCHDOG_RESET after its own hang (the marker its
-    watchdog interrupt wrote) and not after optiboot's exit (no marker)."""
-    proc = subprocess.Popen(
-        [str(SIM), "--bootloader", str(OPTIBOOT), str(WDT_ELF)],
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        bufsize=1,
-    )  # fmt: skip
+    watchdog interrupt wrote) and not after optiboot's exit (no marker). Each step waits for the
+    event that makes the next one valid (the harness reports every reset), nothing is retried."""
+    sim = Harness("--bootloader", str(OPTIBOOT), str(WDT_ELF))
     try:
-        port = proc.stdout.readline().split(None, 1)[1].strip()
-        dev = RawDevice(port)  # opening the port resets into optiboot (the auto-reset)
-        deadline = time.monotonic() + 20.0
-
-        def ask(cmd):
-            while time.monotonic() < deadline:
-                try:
-                    return dev.command(*cmd, timeout_s=0.3)
-                except AssertionError:
-                    continue
-            raise AssertionError(f"no answer to {cmd[0].name}")
-
-        ask(p.identify())
-        ask(p.set_telemetry(0.01))
-        first = dev.telemetry(timeout_s=2.0)
+        mark = len(sim.stderr)
+        dev = RawDevice(sim.port_name)  # opening the port resets into optiboot (the auto-reset)
+        opened_ms = sim.state()["t_ms"]
+        # optiboot's exit: its watchdog reset starts the application
+        mark = sim.wait_stderr("watchdog", mark) + 1
+        app_ms = sim.state()["t_ms"]
+        assert dev.status(*p.identify()) == S.OK
+        assert dev.status(*p.set_telemetry(0.01)) == S.OK
+        first = dev.telemetry(timeout_s=WAIT_S)
         assert not first.flags & F.WATCHDOG_RESET  # optiboot's own watchdog exit is not ours
         # the test build hangs 300 ms after it started: its watchdog interrupt, then the reset;
-        # the restarted application (telemetry off again) is asked until it streams
-        after = None
-        while time.monotonic() < deadline and after is None:
-            with contextlib.suppress(AssertionError):
-                ask(p.set_telemetry(0.01))
-                t = dev.telemetry(timeout_s=0.5)
-                if t.flags & F.WATCHDOG_RESET:
-                    after = t
-        assert after is not None, "no WATCHDOG_RESET after the hang"
+        # after a watchdog reset optiboot starts the application at once (telemetry off again)
+        sim.wait_stderr("watchdog", mark)
+        assert dev.status(*p.set_telemetry(0.01)) == S.OK
+        after = dev.telemetry(timeout_s=WAIT_S)
+        assert after.flags & F.WATCHDOG_RESET, after
         assert after.t_ms < first.t_ms + 2000  # device time restarted with the reset
+        print(f"\nport opened at {opened_ms:.0f} ms, the application answered from "
+              f"{app_ms:.0f} ms (AVR time): {app_ms - opened_ms:.0f} ms of bootloader")
+        assert app_ms - opened_ms <= p.READY_AFTER_OPEN_S * 1e3
         dev.close()
     finally:
-        with contextlib.suppress(OSError):
-            proc.stdin.close()
-        proc.terminate()
-        proc.wait(5)
-    assert "watchdog" in proc.stderr.read()
+        sim.close()

@@ -416,7 +416,7 @@ def test_ack_parse():
 
 # ------------------------------------------------------------------ the Python firmware model
 class Model:
-    """The Python firmware model (drivers/mock/firmware.py) driven in simulated device time."""
+    """The stand-in firmware (the C core behind drivers/mock/firmware.py) in simulated time."""
 
     def __init__(self, eeprom: bytearray | None = None, **wire) -> None:
         from smabench.drivers.mock.firmware import Electrical, MockFirmware
@@ -465,7 +465,8 @@ def test_model_lease_expires_while_pings_go_on():
     assert t_off == pytest.approx(250, abs=1)
     t = m.t
     assert t.flags & p.Flag.LEASE_EXPIRED and not t.flags & p.Flag.HOST_TIMEOUT
-    assert t.setpoint_a == 0.0 and t.current_a == 0.0
+    # ADC code 0 reads as half a count (1.4 mA): the core's rounding of a code k to [k, k+1)
+    assert t.setpoint_a == 0.0 and t.current_a < 0.002 and m.fw.current_ma == 0.0
     assert m.status(*p.enable(True)) == p.Status.OK and not m.t.flags & p.Flag.LEASE_EXPIRED
     assert m.status(p.MsgType.SET_LEASE, b"\x13\x00") == p.Status.OUT_OF_RANGE  # 19 ms
 
@@ -519,7 +520,7 @@ def test_model_estop_ntc_thermocouple():
         assert math.isnan(m.t.ambient_c) and m.t.flags & p.Flag.NTC_FAULT
     m.wire.ntc = "ok"
     m.run(150)
-    assert m.t.ambient_c == pytest.approx(22.0)
+    assert m.t.ambient_c == pytest.approx(22.0, abs=0.1)  # through the 10-bit NTC divider
     # the thermocouple reports the wire temperature it is given (the plant's), in 0.25 °C
     assert m.t.thermocouple_status == p.TcStatus.ABSENT and math.isnan(m.t.temperature_c)
     m.wire.wire_temperature_c = 61.3
@@ -587,6 +588,76 @@ def test_model_dissipation_limit_as_the_c_core():
     i = m.fw.current_ma / 1000.0
     assert m.t.flags & p.Flag.DISSIPATION and m.t.flags & p.Flag.LIMIT_ACTIVE
     assert (5.5 - i * (0.06 + 0.1 + 0.1)) * i == pytest.approx(10.0, abs=0.3)
-    m.wire.resistance_ohm = 0.44
+    m.wire.resistance_ohm = 0.6  # 2.5 A: 5.35 V - 1.5 V - 0.25 V across the MOSFET, 9.6 W
     m.run(300)
     assert not m.t.flags & p.Flag.DISSIPATION and m.fw.current_ma == pytest.approx(2500, abs=10)
+
+
+# ------------------------------------------------------------------ PROTOCOL.md answers as bytes
+ANSWER_FLAGS = p.Flag.ENABLED | p.EVENTS | p.LATCHED_FAULTS | p.Flag.VSENSE_FAULT
+
+
+def _vector(name: str) -> tuple[int, int, bytes, bytes]:
+    good, _ = load_vectors(VECTOR_DIR / "frames.txt")
+    return next((seq, type_, payload, frame) for n, seq, type_, payload, frame in good if n == name)
+
+
+def _answer(name: str, t: p.Telemetry, voltage: bool = False) -> None:
+    want = p.Telemetry.from_payload(_vector(name)[2])
+    assert t.flags & ANSWER_FLAGS == want.flags & ANSWER_FLAGS, (name, t)
+    assert t.setpoint_a == want.setpoint_a, (name, t)
+    if voltage:
+        assert math.isnan(t.voltage_v) == math.isnan(want.voltage_v), (name, t)
+
+
+def test_version_mismatch_answer_is_the_vector_byte_for_byte():
+    """A version-1 host's IDENTIFY: the core (through the stand-in) answers exactly the vector."""
+    from smabench.drivers.mock.firmware import MockFirmware
+
+    out = MockFirmware(0.0).receive(_vector("answer_identify_v1")[3])
+    assert out == _vector("answer_ack_identify_v1_mismatch_mock")[3]
+
+
+def test_lease_answers_are_the_vectors():
+    """After LEASE_EXPIRED: off, setpoint 0; ENABLE 1 is accepted at once, at 0 mA."""
+    m = Model()
+    m.status(*p.set_telemetry(0.01))
+    m.status(*p.set_current(1.0))
+    m.status(*p.enable(True))
+    m.run(260, every=lambda mm: round(mm.now) % 20 == 0 and mm.status(*p.ping()))
+    _answer("answer_telemetry_lease_expired", m.t)
+    assert m.status(*p.enable(True)) == p.Status.OK
+    m.run(20)
+    _answer("answer_telemetry_enabled_after_lease", m.t)
+    assert m.fw.current_ma == 0.0
+
+
+def test_voltage_is_never_sent_with_another_current():
+    """A 1 A → 0.5 A step into 0.44 Ω: frames without a voltage while the wire channel's window
+    is from the old current, and every voltage sent is V at the frame's own current."""
+    m = Model(resistance_ohm=0.44)
+    m.status(*p.set_lease(5.0))
+    m.status(*p.set_current(1.0))
+    m.status(*p.enable(True))
+    m.run(100)
+    m.status(*p.set_current(0.5))
+    frames = []
+    for _ in range(60):
+        m.run(1)
+        frames.append(m.t)
+    unpaired = [t for t in frames if math.isnan(t.voltage_v)]
+    assert unpaired and not any(t.flags & p.Flag.VSENSE_FAULT for t in unpaired)
+    _answer("answer_telemetry_voltage_unpaired", unpaired[0], voltage=True)
+    for t in frames:
+        if not math.isnan(t.voltage_v):
+            assert t.voltage_v == pytest.approx(0.44 * t.current_a, rel=0.035, abs=0.0045), t
+
+
+def test_every_command_fits_the_window_and_the_longest_is_the_vector():
+    good, _ = load_vectors(VECTOR_DIR / "frames.txt")
+    skip = ("unknown", "payload", "seq0")  # frame-layer vectors, not commands
+    sizes = {n: len(f) for n, _, t, _, f in good if t < p.MsgType.ACK and not n.startswith(skip)}
+    longest = max(sizes, key=sizes.get)
+    assert sizes[longest] == len(_vector("answer_longest_command_set_heat_model")[3]) == 14
+    assert sizes[longest] <= p.COMMAND_WINDOW_BYTES
+    assert len(_vector("answer_ack_identify_v1_mismatch")[3]) == 24  # PROTOCOL.md's longest ACK

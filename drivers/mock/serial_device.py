@@ -1,4 +1,5 @@
-"""The mock current driver on a pseudo-terminal: :class:`MockFirmware` behind a real tty.
+"""The mock current driver on a pseudo-terminal: :class:`MockFirmware` (the real firmware core,
+built for the host, with the electrical side in Python) behind a real tty.
 
 The host driver opens :attr:`SerialDevice.port_name` (``/dev/pts/N``) like a USB serial port.
 A thread steps the firmware model in real time (1 ms device steps, catching up on the wall clock,

@@ -212,6 +212,13 @@ uint8_t hal_uart_write(const uint8_t *data, uint8_t len)
     return n;
 }
 
+/* The ring holds TX_SIZE - 1 bytes; tx_tail moves on in the ISR (a single-byte read is atomic),
+ * so the space only grows between this call and the write that follows it. */
+uint8_t hal_uart_tx_free(void)
+{
+    return (uint8_t)(TX_MASK - ((uint8_t)(tx_head - tx_tail) & TX_MASK));
+}
+
 uint8_t hal_avr_uart_overruns(void) { return rx_overruns; }
 
 static void uart_init(void)

@@ -29,6 +29,15 @@
 #define TRIM_LEARN_MIN_MA 200 /* below, offsets dominate the path error: the trim holds */
 #define TRIM_MAX_Q16 (65536 / 8) /* the trim corrects the setpoint path by at most 12.5 % */
 
+/* The longest ACK: seq, type, status + IDENTIFY's data (6 bytes + name; the other data is
+ * at most 8 bytes). A command is taken from the RX buffer only when an ACK this long fits in the
+ * TX buffer, so every command gets its ACK, whole. */
+#define ACK_MAX_DATA (6u + sizeof DEVICE_NAME - 1u > 8u ? 6u + sizeof DEVICE_NAME - 1u : 8u)
+#define ACK_MAX_PAYLOAD (3u + ACK_MAX_DATA)
+#define ACK_MAX_WIRE (COBS_MAX_ENCODED(ACK_MAX_PAYLOAD + 4u) + 1u)
+/* telemetry leaves this much room for an ACK, so it never delays one */
+#define TELEMETRY_MAX_WIRE (COBS_MAX_ENCODED(TELEMETRY_LEN + 4u) + 1u)
+
 #define XADC_PERIOD_MS 2u  /* ADS1115 at 860 SPS: a conversion takes <= 1.3 ms */
 #define XADC_AVERAGE 4u    /* conversions averaged per published value */
 #define XADC_FAULT_AFTER 3u
@@ -96,14 +105,18 @@ static int16_t cdeg(float c)
     return (int16_t)(x >= 0.0f ? x + 0.5f : x - 0.5f);
 }
 
-static void send(uint8_t type, const uint8_t *payload, uint8_t len)
+/* Frames go out whole or not at all (PROTOCOL.md "Flow control"): a frame is queued only when
+ * the TX ring has room for all of it; returns 1 when queued, 0 when it did not fit. */
+static uint8_t send(uint8_t type, const uint8_t *payload, uint8_t len)
 {
     uint8_t out[FRAME_MAX_WIRE];
     uint8_t n = frame_encode(tx_seq, type, payload, len, out, sizeof out);
-    if (n != 0u) {
-        (void)hal_uart_write(out, n); /* a full TX buffer drops bytes; the host resyncs */
-        tx_seq++;
+    if (n == 0u || hal_uart_tx_free() < n) {
+        return 0;
     }
+    (void)hal_uart_write(out, n); /* fits: all n bytes are taken */
+    tx_seq++;
+    return 1;
 }
 
 static void set_flag(uint16_t flag, uint8_t on)
@@ -400,7 +413,7 @@ static uint8_t run_command(const frame_packet_t *p, uint8_t *data, uint8_t *data
 
 static void handle(const frame_packet_t *p)
 {
-    uint8_t ack[3u + 6u + sizeof DEVICE_NAME - 1u];
+    uint8_t ack[ACK_MAX_PAYLOAD];
     uint8_t data_len = 0;
     ack[0] = p->seq;
     ack[1] = p->type;
@@ -663,12 +676,24 @@ static uint16_t control_step(uint16_t sp_ma)
     return out > (int32_t)DUTY_MAX ? DUTY_MAX : (uint16_t)out;
 }
 
-static void send_telemetry(uint32_t now)
+/* The wire voltage goes out only with a current it was measured at: its window's fast-path
+ * current within 3 % + 10 mA of the current in the same frame; else (the 8 ms after a step, or
+ * a window that saw the current move) "not available", never V at one current over I at another. */
+static uint16_t paired_voltage_dmv(void)
 {
-    uint8_t t[TELEMETRY_LEN];
-    put_u32(&t[0], now);
+    uint16_t at = xadc_i_at[HAL_XADC_WIRE], now = s.current_ma;
+    if (s.voltage_dmv == U16_NONE || at == 0xFFFFu) {
+        return U16_NONE;
+    }
+    uint16_t hi = at > now ? at : now, lo = at > now ? now : at;
+    return (uint16_t)(hi - lo) <= (uint16_t)(hi / 32u + 10u) ? s.voltage_dmv : U16_NONE;
+}
+
+uint8_t core_telemetry(uint8_t *t)
+{
+    put_u32(&t[0], hal_millis());
     put_u16(&t[4], s.current_ma);
-    put_u16(&t[6], s.voltage_dmv);
+    put_u16(&t[6], paired_voltage_dmv());
     put_u16(&t[8], (uint16_t)((uint32_t)s.duty * 65535u / HAL_PWM_TOP));
     put_u16(&t[10], (uint16_t)s.ambient_cdeg);
     put_u16(&t[12], s.flags);
@@ -680,9 +705,12 @@ static void send_telemetry(uint32_t now)
     put_u16(&t[24], s.precise_dma);
     put_u16(&t[26], s.supply_mv);
     t[28] = s.tc_status;
-    send(MSG_TELEMETRY, t, sizeof t);
+    return TELEMETRY_LEN;
 }
 
+/* A telemetry frame that falls due is sent when it fits whole with room left for an ACK;
+ * otherwise it waits for the next tick (counted in telemetry_deferred), and one that falls a whole
+ * period behind is skipped: telemetry never bursts and never cuts or delays an ACK. */
 static void telemetry_tick(uint32_t now)
 {
     if (s.telemetry_period_ms == 0u) {
@@ -695,7 +723,16 @@ static void telemetry_tick(uint32_t now)
     if ((int32_t)(now - next_telem_ms) < 0) {
         return;
     }
-    send_telemetry(now);
+    uint8_t t[TELEMETRY_LEN];
+    if (hal_uart_tx_free() < TELEMETRY_MAX_WIRE + ACK_MAX_WIRE ||
+        !send(MSG_TELEMETRY, t, core_telemetry(t))) {
+        if (s.telemetry_deferred != 0xFFFFu) {
+            s.telemetry_deferred++;
+        }
+        if ((int32_t)(now - next_telem_ms) < (int32_t)s.telemetry_period_ms) {
+            return; /* try again at the next tick */
+        }
+    }
     next_telem_ms += s.telemetry_period_ms;
     if ((int32_t)(now - next_telem_ms) >= 0) {
         next_telem_ms = now + s.telemetry_period_ms; /* fell behind: skip, do not burst */
@@ -736,6 +773,7 @@ void core_init(uint8_t was_watchdog_reset)
     s.model_c = was_watchdog_reset ? (float)s.heat.tmax_dc * 0.1f - (float)HEAT_REARM_K
                                    : ambient_c;
     last_rx_ms = hal_millis();
+    s.last_rx_ms = last_rx_ms;
     lease_start_ms = last_rx_ms;
     next_telem_ms = last_rx_ms;
     telem_restart = 0;
@@ -746,9 +784,11 @@ void core_poll(void)
 {
     int16_t c;
     frame_packet_t pkt;
-    while ((c = hal_uart_read()) >= 0) {
+    /* a command is read only when its ACK fits whole: otherwise it waits in the RX buffer */
+    while (hal_uart_tx_free() >= ACK_MAX_WIRE && (c = hal_uart_read()) >= 0) {
         if (frame_rx_push(&rx, (uint8_t)c, &pkt)) {
             last_rx_ms = hal_millis(); /* every valid frame feeds the host watchdog */
+            s.last_rx_ms = last_rx_ms;
             handle(&pkt);
         }
     }
@@ -801,6 +841,11 @@ void core_control_tick(void)
         set_flag(FLAG_DISSIPATION, dissipating);
     }
     telemetry_tick(now);
+}
+
+void core_latch_fault(uint16_t fault)
+{
+    latch((uint16_t)(fault & FLAGS_LATCHED));
 }
 
 const core_state_t *core_state(void)

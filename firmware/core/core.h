@@ -46,6 +46,14 @@ void core_poll(void);
  * open wire), current control, telemetry. Call from the main loop when the 1 ms timer elapsed. */
 void core_control_tick(void);
 
+/* Latch faults (FLAGS_LATCHED bits; others ignored) from outside the core: output off at once,
+ * cleared by CLEAR_FAULTS as any latched fault. For an external protection reporting a trip and
+ * for the host stand-ins' fault injection. */
+void core_latch_fault(uint16_t fault);
+/* The TELEMETRY payload (PROTOCOL.md) of the present state into out (TELEMETRY_LEN bytes);
+ * returns TELEMETRY_LEN. */
+uint8_t core_telemetry(uint8_t *out);
+
 /* Read-only view of the state, for tests. */
 typedef struct {
     uint8_t enabled;
@@ -66,6 +74,8 @@ typedef struct {
     float model_c;           /* energy budget: conservative wire temperature, degC */
     uint16_t rx_crc_errors;
     uint16_t rx_frame_errors;
+    uint16_t telemetry_deferred; /* telemetry frames that waited for TX room (saturating) */
+    uint32_t last_rx_ms;     /* hal_millis() of the last valid frame (feeds the host timeout) */
     core_cal_t cal;
     core_heat_t heat;
 } core_state_t;

@@ -24,8 +24,11 @@ uint32_t hal_millis(void);
 /* Next received UART byte (0 ... 255) or -1 when the RX ring buffer is empty. Non-blocking. */
 int16_t hal_uart_read(void);
 /* Queue bytes for transmission; returns how many were queued (drops the rest if the TX ring
- * buffer is full). Non-blocking. */
+ * buffer is full). Non-blocking. The core writes a frame only when hal_uart_tx_free() says it
+ * fits whole (PROTOCOL.md "Flow control"), so nothing is ever dropped here. */
 uint8_t hal_uart_write(const uint8_t *data, uint8_t len);
+/* Bytes hal_uart_write() would take now (free space of the TX ring buffer). */
+uint8_t hal_uart_tx_free(void);
 /* Setpoint PWM duty, 0 ... HAL_PWM_TOP (filtered to the sink's op-amp). 0 = pin low. */
 void hal_pwm_set(uint16_t duty);
 /* Driver enable line: 0 clamps the sink's setpoint to zero in hardware (also the reset state). */

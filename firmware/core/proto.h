@@ -63,7 +63,9 @@
 #define FW_VERSION_MAJOR 2u
 #define FW_VERSION_MINOR 0u
 #define FW_VERSION_PATCH 0u
+#ifndef DEVICE_NAME /* the host library for the Python stand-ins says SMA-CD328-MOCK */
 #define DEVICE_NAME "SMA-CD328"
+#endif
 
 /* Ranges and safety thresholds */
 #define HARD_LIMIT_MA 2500u

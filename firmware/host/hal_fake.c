@@ -17,6 +17,8 @@ static uint8_t rx_buf[FAKE_RX_CAP];
 static size_t rx_head, rx_tail;
 static uint8_t tx_buf[FAKE_TX_CAP];
 static size_t tx_len, tx_limit;
+static size_t tx_ring, tx_sent; /* ring mode: capacity (0: off), bytes already on the line */
+static double tx_per_ms, tx_credit; /* ring mode: bytes the UART sends per ms */
 static uint16_t pwm_duty;
 static uint8_t out_enabled;
 static uint32_t pwm_sets, wdt_feeds;
@@ -56,6 +58,8 @@ void fake_reset(void)
     rx_head = rx_tail = 0;
     tx_len = 0;
     tx_limit = FAKE_TX_CAP;
+    tx_ring = tx_sent = 0;
+    tx_per_ms = tx_credit = 0.0;
     pwm_duty = 0;
     out_enabled = 0;
     pwm_sets = wdt_feeds = 0;
@@ -153,7 +157,25 @@ void fake_advance_ms(uint32_t ms)
             }
         }
         now_ms++;
+        if (tx_ring != 0u) { /* the UART empties the ring at the baud rate */
+            tx_credit += tx_per_ms;
+            while (tx_credit >= 1.0 && tx_sent < tx_len) {
+                tx_sent++;
+                tx_credit -= 1.0;
+            }
+            if (tx_sent == tx_len && tx_credit > 1.0) {
+                tx_credit = 1.0; /* an idle line saves no bytes */
+            }
+        }
     }
+}
+
+void fake_tx_ring(size_t capacity, double bytes_per_ms)
+{
+    tx_ring = capacity;
+    tx_per_ms = bytes_per_ms;
+    tx_sent = tx_len;
+    tx_credit = 0.0;
 }
 
 void fake_rx_push(const uint8_t *data, size_t len)
@@ -170,11 +192,20 @@ size_t fake_rx_pending(void) { return rx_tail - rx_head; }
 
 const uint8_t *fake_tx_data(size_t *len)
 {
-    *len = tx_len;
+    *len = tx_ring != 0u ? tx_sent : tx_len;
     return tx_buf;
 }
 
-void fake_tx_clear(void) { tx_len = 0; }
+void fake_tx_clear(void)
+{
+    if (tx_ring != 0u) { /* keep what is still queued in the ring */
+        memmove(tx_buf, tx_buf + tx_sent, tx_len - tx_sent);
+        tx_len -= tx_sent;
+        tx_sent = 0;
+        return;
+    }
+    tx_len = 0;
+}
 void fake_tx_set_limit(size_t max_bytes) { tx_limit = max_bytes < FAKE_TX_CAP ? max_bytes : FAKE_TX_CAP; }
 uint16_t fake_pwm_duty(void) { return pwm_duty; }
 uint8_t fake_output_enabled(void) { return out_enabled; }
@@ -215,10 +246,19 @@ int16_t hal_uart_read(void)
 uint8_t hal_uart_write(const uint8_t *data, uint8_t len)
 {
     uint8_t n = 0;
-    while (n < len && tx_len < tx_limit) {
+    while (n < len && tx_len < tx_limit && (tx_ring == 0u || tx_len - tx_sent < tx_ring)) {
         tx_buf[tx_len++] = data[n++];
     }
     return n;
+}
+
+uint8_t hal_uart_tx_free(void)
+{
+    size_t free_bytes = tx_limit > tx_len ? tx_limit - tx_len : 0u;
+    if (tx_ring != 0u && tx_ring - (tx_len - tx_sent) < free_bytes) {
+        free_bytes = tx_ring - (tx_len - tx_sent);
+    }
+    return (uint8_t)(free_bytes > 255u ? 255u : free_bytes);
 }
 
 void hal_pwm_set(uint16_t duty)

@@ -38,6 +38,9 @@ size_t fake_rx_pending(void);
 const uint8_t *fake_tx_data(size_t *len); /* bytes written by the core since the last clear */
 void fake_tx_clear(void);
 void fake_tx_set_limit(size_t max_bytes);  /* simulate a full TX ring: accept at most this many */
+/* Model the AVR's TX ring: at most capacity bytes queued, sent at bytes_per_ms (117647 baud, 10
+ * bits a byte: 11.76); fake_tx_data() then returns only what went out. capacity 0: off. */
+void fake_tx_ring(size_t capacity, double bytes_per_ms);
 
 uint16_t fake_pwm_duty(void);        /* last duty set */
 uint8_t fake_output_enabled(void);   /* enable line */

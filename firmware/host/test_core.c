@@ -312,6 +312,131 @@ static void test_vectors(const char *path)
     printf("vectors %s: %d valid, %d invalid\n", path, good, bad);
 }
 
+/* ------------------------------------------------------------------ answer vectors */
+static int vec_files_n;
+static char **vec_files;
+
+/* Payload and frame of the valid vector called name; 0 when not found. */
+static int vector_find(const char *name, uint8_t *pl, int *pl_n, uint8_t *fr, int *fr_n)
+{
+    char line[2048];
+    for (int k = 0; k < vec_files_n; k++) {
+        FILE *f = fopen(vec_files[k], "r");
+        if (!f) continue;
+        while (fgets(line, sizeof line, f)) {
+            char *tok[6];
+            int nt = 0;
+            char *hash = strchr(line, '#');
+            if (hash) *hash = '\0';
+            for (char *t = strtok(line, " \t\r\n"); t && nt < 6; t = strtok(NULL, " \t\r\n")) {
+                tok[nt++] = t;
+            }
+            if (nt == 5 && strcmp(tok[0], name) == 0) {
+                *pl_n = hexbytes(tok[3], pl, 512);
+                *fr_n = hexbytes(tok[4], fr, 512);
+                fclose(f);
+                return 1;
+            }
+        }
+        fclose(f);
+    }
+    CHECK(0, "vector %s not found", name);
+    return 0;
+}
+
+/* Telemetry fields an answer vector fixes: the flags of the link's state (ENABLED, the events,
+ * the latched faults), the setpoint (bytes 14-15) and the wire voltage (6-7) when asked. */
+#define ANSWER_FLAGS (FLAG_ENABLED | FLAGS_EVENTS | FLAGS_LATCHED | FLAG_VSENSE_FAULT)
+static void check_answer(const char *name, const uint8_t *got, int voltage)
+{
+    static uint8_t pl[512], fr[512];
+    int pl_n = 0, fr_n = 0;
+    if (!vector_find(name, pl, &pl_n, fr, &fr_n)) return;
+    CHECK((rd16(got + 12) & ANSWER_FLAGS) == (rd16(pl + 12) & ANSWER_FLAGS),
+          "%s: flags 0x%04x, vector 0x%04x", name, rd16(got + 12), rd16(pl + 12));
+    CHECK(rd16(got + 14) == rd16(pl + 14), "%s: setpoint %u, vector %u", name, rd16(got + 14),
+          rd16(pl + 14));
+    if (voltage) {
+        CHECK(rd16(got + 6) == rd16(pl + 6), "%s: voltage 0x%04x, vector 0x%04x", name,
+              rd16(got + 6), rd16(pl + 6));
+    }
+}
+
+static const pkt_t *next_telemetry(int max_ms)
+{
+    for (int ms = 0; ms < max_ms; ms++) {
+        tick();
+        int n = take_tx();
+        for (int k = n - 1; k >= 0; k--) {
+            if (rxp[k].type == MSG_TELEMETRY) return &rxp[k];
+        }
+    }
+    return NULL;
+}
+
+/* The PROTOCOL.md answers that are bytes (test-vectors/README.md, "answer_*"). */
+static void test_answers(void)
+{
+    static uint8_t pl[512], fr[512];
+    int pl_n = 0, fr_n = 0;
+    /* version mismatch: the device's identity with status VERSION_MISMATCH, nothing else */
+    reset(0);
+    if (vector_find("answer_identify_v1", pl, &pl_n, fr, &fr_n)) fake_rx_push(fr, (size_t)fr_n);
+    core_poll();
+    size_t n;
+    const uint8_t *d = fake_tx_data(&n);
+    if (vector_find("answer_ack_identify_v1_mismatch", pl, &pl_n, fr, &fr_n)) {
+        CHECK(n == (size_t)fr_n && memcmp(d, fr, n) == 0, "IDENTIFY v1: not the vector's ACK");
+    }
+    fake_tx_clear();
+    frame_rx_init(&host_rx);
+    /* the lease: off, setpoint 0, LEASE_EXPIRED; then ENABLE 1 is accepted, at 0 mA */
+    reset(0);
+    CHECK(cmd_u16(MSG_SET_TELEMETRY, 10) == ST_OK && cmd_u16(MSG_SET_CURRENT, 1000) == ST_OK &&
+              cmd_u8(MSG_ENABLE, 1) == ST_OK, "lease set-up");
+    const pkt_t *t = NULL;
+    for (int ms = 0; ms < 400 && !(t && (rd16(t->payload + 12) & FLAG_LEASE_EXPIRED)); ms += 10) {
+        CHECK(cmd(MSG_PING, NULL, 0) == ST_OK, "ping");
+        t = next_telemetry(10);
+    }
+    CHECK(t != NULL, "telemetry");
+    if (t) check_answer("answer_telemetry_lease_expired", t->payload, 0);
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK, "ENABLE 1 after LEASE_EXPIRED: OK");
+    t = next_telemetry(20);
+    CHECK(t != NULL && fake_current_a() < 0.001, "re-enabled at 0 mA");
+    if (t) check_answer("answer_telemetry_enabled_after_lease", t->payload, 0);
+    /* the wire voltage is not sent with a current it was not measured at */
+    reset(0);
+    CHECK(cmd_u16(MSG_SET_LEASE, 5000) == ST_OK && cmd_u16(MSG_SET_CURRENT, 1000) == ST_OK &&
+              cmd_u8(MSG_ENABLE, 1) == ST_OK, "step set-up");
+    ticks(100);
+    CHECK(cmd_u16(MSG_SET_CURRENT, 500) == ST_OK && cmd_u16(MSG_SET_TELEMETRY, 5) == ST_OK,
+          "step");
+    int unpaired = 0, paired = 0, wrong = 0;
+    for (int ms = 0; ms < 60; ms += 5) {
+        t = next_telemetry(5);
+        if (!t) continue;
+        uint16_t dmv = rd16(t->payload + 6), ma = rd16(t->payload + 4);
+        if (dmv == U16_NONE) {
+            if (!unpaired++) check_answer("answer_telemetry_voltage_unpaired", t->payload, 1);
+        } else {
+            paired++;
+            /* V/I of the frame against the 0.44 Ohm wire: 3 % + 10 mA of pairing slack */
+            wrong += fabs(dmv / 10.0 - ma * 0.44) > 0.035 * ma * 0.44 + 10 * 0.44;
+        }
+    }
+    CHECK(unpaired > 0 && paired > 5 && wrong == 0,
+          "after a 1000 -> 500 mA step: %d frames without voltage, %d paired, %d paired wrongly",
+          unpaired, paired, wrong);
+    /* the longest command fits the host's 48-byte window; the longest ACK ACK_MAX_WIRE (24) */
+    if (vector_find("answer_longest_command_set_heat_model", pl, &pl_n, fr, &fr_n)) {
+        CHECK(fr_n == 14 && fr_n <= 48, "longest command %d bytes", fr_n);
+    }
+    if (vector_find("answer_ack_identify_v1_mismatch", pl, &pl_n, fr, &fr_n)) {
+        CHECK(fr_n == 24, "longest ACK %d bytes, PROTOCOL.md says 24", fr_n);
+    }
+}
+
 static void test_frame_rx(void)
 {
     frame_rx_t rx;
@@ -1153,14 +1278,56 @@ static void test_resync(void)
         core_poll();
     }
     CHECK(take_tx() == 1 && rxp[0].payload[0] == 77 && st()->setpoint_ma == 256, "split frame");
-    /* a full TX buffer drops the ACK, no crash, later frames fine */
+    /* a full TX buffer: the command waits in the RX buffer (no cut ACK); room again: its ACK */
     fake_tx_set_limit(5);
     push_frame(1, MSG_PING, NULL, 0);
     core_poll();
-    fake_tx_clear();
+    CHECK(fake_rx_pending() > 0, "command held while its ACK cannot fit");
+    CHECK(take_tx() == 0, "nothing sent, not even a part");
     fake_tx_set_limit(FAKE_TX_CAP);
-    frame_rx_init(&host_rx);
-    CHECK(cmd(MSG_PING, NULL, 0) == ST_OK, "after TX overflow");
+    core_poll();
+    CHECK(take_tx() == 1 && rxp[0].payload[0] == 1 && rxp[0].payload[2] == ST_OK, "ACK after room");
+    CHECK(cmd(MSG_PING, NULL, 0) == ST_OK, "after a full TX buffer");
+}
+
+/* Back-to-back commands against the AVR's 128-byte TX ring emptied at 117 647 baud, telemetry at
+ * its fastest: every command gets its ACK, whole and in order; telemetry waits, never cuts. */
+static void burst(uint8_t type, const uint8_t *pl, uint8_t len, const char *what)
+{
+    reset(0);
+    fake_tx_ring(128, 11.7647);
+    (void)cmd_u16(MSG_SET_TELEMETRY, 5); /* its ACK is still in the ring: counted below */
+    for (int i = 0; i < 100; i++) {
+        push_frame((uint8_t)(i + 1), type, pl, len);
+    }
+    int acks = 0, telem = 0, in_order = 1;
+    for (int ms = 0; ms < 400; ms++) {
+        tick();
+        int n = take_tx();
+        for (int k = 0; k < n; k++) {
+            if (rxp[k].type == MSG_ACK) {
+                in_order &= rxp[k].len == 3 && rxp[k].payload[0] == (uint8_t)acks &&
+                            rxp[k].payload[2] == ST_OK;
+                acks++;
+            } else if (rxp[k].type == MSG_TELEMETRY) {
+                in_order &= rxp[k].len == TELEMETRY_LEN;
+                telem++;
+            }
+        }
+    }
+    CHECK(acks == 101 && in_order, "%s: %d of 101 ACKs (in order, OK: %d)", what, acks, in_order);
+    CHECK(telem > 20, "%s: telemetry went on (%d frames)", what, telem);
+    CHECK(st()->rx_crc_errors == 0 && st()->rx_frame_errors == 0, "%s: no receive errors", what);
+    printf("burst %s: %d ACKs, %d telemetry frames, %u deferred\n", what, acks, telem,
+           st()->telemetry_deferred);
+}
+
+static void test_whole_frames(void)
+{
+    uint8_t period[2] = {5, 0};
+    burst(MSG_PING, NULL, 0, "100 PING");
+    burst(MSG_SET_TELEMETRY, period, 2, "100 SET_TELEMETRY");
+    fake_tx_ring(0, 0.0);
 }
 
 int main(int argc, char **argv)
@@ -1169,6 +1336,8 @@ int main(int argc, char **argv)
     test_cobs();
     test_frame_rx();
     for (int i = 1; i < argc; i++) test_vectors(argv[i]);
+    vec_files_n = argc - 1;
+    vec_files = argv + 1;
     if (argc < 2) printf("note: no vectors file given (usage: test_core vectors.txt ...)\n");
     test_commands();
     test_calibration();
@@ -1187,6 +1356,8 @@ int main(int argc, char **argv)
     test_telemetry();
     test_watchdog_flag();
     test_resync();
+    test_whole_frames();
+    if (vec_files_n > 0) test_answers();
     printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;
 }

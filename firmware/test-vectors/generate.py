@@ -62,6 +62,7 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         supply_v=4.94,
         thermocouple_status=p.TcStatus(0),
     ).to_payload()
+    nan = float("nan")
     telemetry_fault = p.Telemetry(
         t_ms=0x01000000,
         current_a=0.0,
@@ -76,7 +77,6 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         supply_v=0.0,
         precise_current_a=0.0,
     ).to_payload()
-    nan = float("nan")
     telemetry_sensors_missing = p.Telemetry(
         t_ms=250,
         current_a=0.0,
@@ -110,6 +110,26 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         supply_v=5.05,
         thermocouple_status=p.TcStatus(0),
     ).to_payload()
+    # answers of PROTOCOL.md that are bytes: checked against the core itself (host/test_core.c
+    # and, through the stand-in that runs it, tests/test_protocol.py), see README.md
+    lease_expired = p.Telemetry(
+        t_ms=250, current_a=0.001, voltage_v=0.0, duty=0.0, ambient_c=22.0,
+        flags=p.Flag.LEASE_EXPIRED, setpoint_a=0.0, crc_errors=0, frame_errors=0,
+        wire_model_c=40.0, thermocouple_c=nan, precise_current_a=0.0, supply_v=5.0,
+        thermocouple_status=p.TcStatus.ABSENT,
+    ).to_payload()  # fmt: skip
+    reenabled = p.Telemetry(
+        t_ms=260, current_a=0.001, voltage_v=0.0, duty=0.0, ambient_c=22.0,
+        flags=p.Flag.ENABLED, setpoint_a=0.0, crc_errors=0, frame_errors=0,
+        wire_model_c=40.0, thermocouple_c=nan, precise_current_a=0.0, supply_v=5.0,
+        thermocouple_status=p.TcStatus.ABSENT,
+    ).to_payload()  # fmt: skip
+    unpaired = p.Telemetry(
+        t_ms=300, current_a=0.5, voltage_v=nan, duty=0.2, ambient_c=22.0,
+        flags=p.Flag.ENABLED, setpoint_a=0.5, crc_errors=0, frame_errors=0,
+        wire_model_c=40.0, thermocouple_c=nan, precise_current_a=1.0, supply_v=5.0,
+        thermocouple_status=p.TcStatus.ABSENT,
+    ).to_payload()  # fmt: skip
     cal = p.Calibration(current_offset_a=0.015, current_gain=1 / 1.03, voltage_gain=1.01)
     cal_neg = p.Calibration(current_offset_a=-0.0025, current_gain=0.5, voltage_gain=1.5)
     heat = p.HeatModel()
@@ -204,6 +224,25 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         ("telemetry_faults_saturated", 12, M.TELEMETRY, telemetry_fault),
         ("telemetry_sensors_missing", 21, M.TELEMETRY, telemetry_sensors_missing),
         ("telemetry_latched_overtemp_estop", 22, M.TELEMETRY, telemetry_latched),
+        # answers of PROTOCOL.md (README.md: which bytes the core must reproduce)
+        ("answer_identify_v1", 0, M.IDENTIFY, cp(M.IDENTIFY, 1)),  # a version-1 host asks
+        (
+            "answer_ack_identify_v1_mismatch",  # the device's first frame after IDENTIFY v1, seq 0
+            0,
+            M.ACK,
+            ack(0, M.IDENTIFY, S.VERSION_MISMATCH, identify_info()).to_payload(),
+        ),
+        (
+            "answer_ack_identify_v1_mismatch_mock",  # the same from the stand-ins' build
+            0,
+            M.ACK,
+            ack(0, M.IDENTIFY, S.VERSION_MISMATCH, identify_info(name=b"SMA-CD328-MOCK"))
+            .to_payload(),
+        ),
+        ("answer_telemetry_lease_expired", 40, M.TELEMETRY, lease_expired),
+        ("answer_telemetry_enabled_after_lease", 41, M.TELEMETRY, reenabled),
+        ("answer_telemetry_voltage_unpaired", 42, M.TELEMETRY, unpaired),
+        ("answer_longest_command_set_heat_model", 29, M.SET_HEAT_MODEL, heat.to_data()),
         # framing edge cases
         ("payload_zeros_8", 13, M.PING, bytes(8)),
         ("payload_60_zeros", 14, M.PING, bytes(60)),

@@ -52,6 +52,40 @@ class LinkTimeout(LinkError, TimeoutError):  # noqa: N818 (names of the API)
     """No ACK within the timeout and retries, or the port is down."""
 
 
+def lock_holders(port: str) -> list[str]:
+    """The processes holding an exclusive lock (``flock``, as pyserial's ``exclusive=True``
+    takes) on the serial device ``port``, as "pid N (command line)", from ``/proc/locks``;
+    empty when none is found (or not on Linux)."""
+    try:
+        st = os.stat(port)
+        with open("/proc/locks", encoding="ascii") as fh:
+            locks = fh.read().splitlines()
+    except OSError:
+        return []
+    want = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    holders = []
+    for line in locks:
+        words = line.split()
+        if len(words) >= 6 and words[1] == "FLOCK" and words[5] == want:
+            pid = words[4]
+            try:
+                with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                    cmd = fh.read().replace(b"\0", b" ").decode(errors="replace").strip()
+            except OSError:
+                cmd = "?"
+            holders.append(f"pid {pid} ({cmd})")
+    return holders
+
+
+def _open_error(port: str, exc: BaseException) -> str:
+    """Why ``port`` could not be opened, naming who holds it when it is locked."""
+    if "exclusively lock" in str(exc):
+        holders = lock_holders(port)
+        who = ", ".join(holders) if holders else "another program"
+        return f"cannot open {port}: in use by {who}"
+    return f"cannot open {port}: {exc}"
+
+
 def type_name(type_: int) -> str:
     """``IDENTIFY`` for a known message type, ``type 0x42`` otherwise."""
     try:
@@ -191,7 +225,7 @@ class FramedLink:
         try:
             self._ser = self._open_port()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkError(f"cannot open {self.port_name}: {exc}") from exc
+            raise LinkError(_open_error(self.port_name, exc)) from exc
         self._thread = threading.Thread(
             target=self._run, name=f"FramedLink({self.port_name})", daemon=True
         )
@@ -416,6 +450,7 @@ class FramedLink:
                 stopbits=serial.STOPBITS_ONE,
                 timeout=READ_TIMEOUT_S,
                 write_timeout=0.5,
+                exclusive=True,  # no second program (a GUI, a terminal) sends into a session
             )
         self._rx.reset()
         # a lone delimiter ends whatever partial frame the device may have buffered

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from smabench import settings as settings_schema
-from smabench.bench.session_run import RunSettings, run_session
+from smabench.bench.session_run import RunSettings, check_session_space, run_session
 from smabench.protocols import Protocol
 
 log = logging.getLogger(__name__)
@@ -170,7 +170,8 @@ class MockProcess:
             text=True,
             bufsize=1,
             preexec_fn=die_with_parent,
-        )
+            start_new_session=True,  # the bench's stand-in: a terminal's Ctrl-C or hang-up
+        )  # reaches the session (which makes it safe), not the devices
         found: dict[str, str] = {}
         deadline = time.monotonic() + timeout_s
         while True:
@@ -368,7 +369,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     mock = None
     mock_args: list[str] = []
     source = sensor = None
-    signal.signal(signal.SIGTERM, _interrupt)  # ends like Ctrl-C: devices safe, session closed
+    check_session_space(settings)  # a full or read-only --out is refused before any device
+    for sig in (signal.SIGTERM, signal.SIGHUP):  # before the session: end like Ctrl-C (130);
+        signal.signal(sig, _interrupt)  # during it: aborted, closed, 1 (run_session's handlers)
     try:
         if args.mock:
             mock_args = [

@@ -35,6 +35,7 @@ from smabench.sessions import (
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
+    DiskFullError,
 )
 
 log = logging.getLogger(__name__)
@@ -95,6 +96,8 @@ class BenchRuntime:
         self.clock, self.sleep = clock, sleep
         self._estop = threading.Event()
         self._stop = threading.Event()
+        self._abort_reason: str | None = None
+        self._abort_cause = "host"
         self._thread: threading.Thread | None = None
         self.result: RunResult | None = None
 
@@ -150,6 +153,18 @@ class BenchRuntime:
         """Ask the loop to finish after the current tick (devices made safe)."""
         self._stop.set()
 
+    def abort(self, reason: str, cause: str = "host") -> None:
+        """End the session as ``aborted`` with ``reason`` at the next tick (devices made safe);
+        safe to call from a signal handler (it only sets a flag). The first reason stays."""
+        if self._abort_reason is None:
+            self._abort_cause = cause
+            self._abort_reason = reason
+
+    @property
+    def aborting(self) -> bool:
+        """Whether :meth:`abort` was called."""
+        return self._abort_reason is not None
+
     def start(self) -> threading.Thread:
         self._thread = threading.Thread(target=self.run, name="bench-runtime", daemon=True)
         self._thread.start()
@@ -194,9 +209,20 @@ class BenchRuntime:
                 next_tick += period_s
                 if last_tick is not None:
                     periods.append(now - last_tick)
+                    if now - last_tick > cfg.link_timeout_s:  # the whole loop was held up
+                        status, cause = "aborted", "host"
+                        reason = (
+                            f"the recording process stalled for {now - last_tick:.2f} s "
+                            "(stopped, or starved of CPU): longer than the current driver's "
+                            "setpoint lease, which turns its output off"
+                        )
+                        break
                 last_tick = now
                 if self.on_tick is not None:
                     self.on_tick(self.tick.ticks, (now - t0) * cfg.time_scale)
+                if self._abort_reason is not None:
+                    status, reason, cause = "aborted", self._abort_reason, self._abort_cause
+                    break
                 estop, stop = self._estop.is_set(), self._stop.is_set()
                 sample = self.sensor.read_or_flag()
                 out = self.tick.step(
@@ -218,6 +244,9 @@ class BenchRuntime:
                     status, reason, cause = out.status, out.reason, out.cause
                     break
                 self.source.set_current(out.current_a)
+        except DiskFullError as exc:  # the folder's file system is full: rows end at a whole one
+            log.info("session folder full: %s", exc)
+            status, reason, cause = "aborted", exc.reason, "host"
         except Exception as exc:  # any failure ends the session safely, with the reason
             log.exception("runtime loop failed")
             status, reason, cause = "aborted", f"{type(exc).__name__}: {exc}", "device"

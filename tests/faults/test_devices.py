@@ -1,0 +1,50 @@
+"""Device faults: the current driver's link gone (the mock killed: a cable pulled), a second
+program opening the driver's port, the sensor returning Modbus exceptions."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+
+from smabench.sessions import load_session
+
+from .conftest import END_TIMEOUT_S, REPO, assert_ends_aborted, rows_on_disk, smabench_command
+
+
+def test_driver_link_lost_warns_in_true_words_and_aborts(tmp_path, run_mock):
+    run = run_mock(tmp_path, "s")
+    run.wait_progress(1.0)
+    rows_before = rows_on_disk(run.folder)
+    os.kill(run.mock_pid(), signal.SIGKILL)  # the bench gone at once, as a cable pulled out
+    rc, out, err = run.finish()
+    assert "the session goes on" not in err, err  # it does not: it aborts 0.25 s later
+    lines = err.strip().splitlines()
+    assert rc == 1 and "Traceback" not in err, err
+    assert "telemetry lost" in lines[-1], err
+    warned = [ln for ln in lines if "current driver reports link lost" in ln]
+    assert warned and all("the session aborts unless telemetry returns within 0.25 s" in ln
+                          for ln in warned), err  # fmt: skip
+    meta = json.loads((run.folder / "session.json").read_text())
+    assert meta["status"] == "aborted" and "telemetry lost" in meta["end_reason"], meta
+    assert len(load_session(run.folder)) == meta["rows"] >= rows_before
+
+
+def test_a_second_program_on_the_driver_port_is_refused_naming_the_holder(tmp_path, run_mock):
+    run = run_mock(tmp_path, "s")
+    run.wait_progress(1.0)
+    port = json.loads((run.folder / "session.json").read_text())["devices"]["current_driver"][
+        "port"
+    ]
+    second = subprocess.run([*smabench_command(), "calibrate", "show", "--port", port],
+                            capture_output=True, text=True, cwd=REPO, timeout=120)  # fmt: skip
+    lines = second.stderr.strip().splitlines()
+    assert second.returncode == 2, second.stderr
+    assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
+    assert f"in use by pid {run.proc.pid} (" in lines[0] and "run --mock" in lines[0], lines
+    t = run.wait_progress(2.5)  # the session went on, undisturbed
+    run.signal(signal.SIGINT)
+    rc, out, err = run.finish(END_TIMEOUT_S)
+    assert_ends_aborted(rc, err, "SIGINT")
+    assert t >= 2.5

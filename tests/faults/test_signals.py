@@ -165,6 +165,7 @@ def test_process_stopped_2_s_the_lease_trips_and_the_session_says_so(tmp_path, r
     run.signal(signal.SIGCONT, group=False)
     rc, out, err = run.finish()
     assert safe_while_stopped, "the lease did not turn the current off within 2 s"
-    assert_ends_aborted(rc, err, "stalled for 2.")
+    # the driver's link says what it saw while the host was stopped (link lost, host timeout)
+    assert_ends_aborted(rc, err, "stalled for 2.", warnings_from="WARNING smabench.drivers.")
     _check_closed(run.folder, "setpoint lease", rows_before)
     assert_wire_safe(trace)

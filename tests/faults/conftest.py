@@ -43,13 +43,15 @@ class Run:
     stderr read on threads; :meth:`wait_line` / :meth:`wait_progress` wait on what it prints."""
 
     def __init__(self, out: Path, sid: str, *extra: str, trace: Path | None = None,
-                 cycles: int = 20, env: dict[str, str] | None = None) -> None:  # fmt: skip
+                 cycles: int = 20, env: dict[str, str] | None = None,
+                 devices: list[str] | None = None) -> None:  # fmt: skip
         self.out, self.sid = Path(out), sid
         self.folder = self.out / sid
         self.trace = trace
         args = [
-            *smabench_command(), "run", "--mock", "--load-kg", "1", "--cycles", str(cycles),
-            "--current-a", "1.0", "--out", str(out), "--session-id", sid, *extra,
+            *smabench_command(), "run", *(devices or ["--mock"]), "--load-kg", "1",
+            "--cycles", str(cycles), "--current-a", "1.0", "--out", str(out), "--session-id",
+            sid, *extra,
         ]  # fmt: skip
         if trace is not None:
             args += ["--mock-trace", str(trace)]
@@ -132,6 +134,60 @@ class Run:
             if b"mock" in cmd:
                 return int(pid)
         raise AssertionError(f"no mock bench among the run's children {kids}")
+
+
+class Mock:
+    """``smabench mock --control-stdin`` of its own (the bench a run connects to with
+    ``--port``/``--sensor``): :meth:`send` injects a fault (``sensor-exception CODE N``,
+    ``sensor-delay S N``, …), :attr:`devices` are the run's options to reach it."""
+
+    def __init__(self, trace: Path, *extra: str) -> None:
+        self.proc = subprocess.Popen(
+            [*smabench_command(), "mock", "--control-stdin", "--load-kg", "1", "--trace",
+             str(trace), *extra],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1, cwd=REPO,
+        )  # fmt: skip
+        found: dict[str, str] = {}
+        for line in self.proc.stdout:
+            if line.strip() == "ready":
+                break
+            key, sep, value = line.strip().partition(": ")
+            if sep:
+                found[key] = value
+        else:
+            pytest.fail(f"the mock bench ended before ready ({self.proc.wait()})")
+        threading.Thread(target=lambda: [None for _ in self.proc.stdout], daemon=True).start()
+        self.driver, self.sensor = found["driver"], found["sensor-tcp"]
+        self.devices = ["--port", self.driver, "--sensor", self.sensor]
+
+    def send(self, command: str) -> None:
+        self.proc.stdin.write(command + "\n")
+        self.proc.stdin.flush()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            with contextlib.suppress(OSError):
+                self.proc.stdin.close()
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+@pytest.fixture
+def mock_bench(tmp_path):
+    """Start a mock bench with ``mock_bench(trace, *args)``; closed at the end of the test."""
+    mocks: list[Mock] = []
+
+    def start(trace: Path, *extra: str) -> Mock:
+        m = Mock(trace, *extra)
+        mocks.append(m)
+        return m
+
+    yield start
+    for m in mocks:
+        m.close()
 
 
 @pytest.fixture

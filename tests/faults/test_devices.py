@@ -8,9 +8,18 @@ import os
 import signal
 import subprocess
 
-from smabench.sessions import load_session
+import numpy as np
 
-from .conftest import END_TIMEOUT_S, REPO, assert_ends_aborted, rows_on_disk, smabench_command
+from smabench.sessions import FLAG_SENSOR_INVALID, load_session
+
+from .conftest import (
+    END_TIMEOUT_S,
+    REPO,
+    assert_ends_aborted,
+    assert_wire_safe,
+    rows_on_disk,
+    smabench_command,
+)
 
 
 def test_driver_link_lost_warns_in_true_words_and_aborts(tmp_path, run_mock):
@@ -48,3 +57,41 @@ def test_a_second_program_on_the_driver_port_is_refused_naming_the_holder(tmp_pa
     rc, out, err = run.finish(END_TIMEOUT_S)
     assert_ends_aborted(rc, err, "SIGINT")
     assert t >= 2.5
+
+
+def _flags(folder) -> np.ndarray:
+    return load_session(folder).data["flags"].astype(int)
+
+
+def test_sensor_modbus_exceptions_flag_rows_then_a_silent_sensor_ends_the_session(
+    tmp_path, run_mock, mock_bench
+):
+    trace = tmp_path / "trace.csv"
+    bench = mock_bench(trace)
+    run = run_mock(tmp_path, "s", devices=bench.devices)
+    run.wait_progress(1.0)
+    bench.send("sensor-exception 4 20")  # 20 readings answered with "server device failure"
+    t = run.wait_progress(2.5)
+    flagged = (_flags(run.folder) & FLAG_SENSOR_INVALID) != 0
+    assert 15 <= flagged.sum() <= 25, flagged.sum()  # a burst: flagged rows, the session on
+    assert t >= 2.5
+    bench.send("sensor-exception 4 1000000")  # from now on: the sensor unplugged behind its
+    rc, out, err = run.finish()  # RS-485 gateway (every answer an exception)
+    assert_ends_aborted(rc, err, "displacement sensor lost for 1.")
+    meta = json.loads((run.folder / "session.json").read_text())
+    assert meta["status"] == "aborted" and "sensor lost" in meta["end_reason"]
+    bench.close()  # its trace closed
+    assert_wire_safe(trace)
+
+
+def test_sensor_not_answering_ends_the_session_sensor_lost(tmp_path, run_mock, mock_bench):
+    trace = tmp_path / "trace.csv"
+    bench = mock_bench(trace)
+    run = run_mock(tmp_path, "s", devices=bench.devices)
+    run.wait_progress(1.0)
+    bench.send("sensor-delay 5 1000000")  # every answer 5 s late: the cable pulled
+    rc, out, err = run.finish()
+    # pymodbus logs its own "No response received" (the CLI leaves its logger at WARNING)
+    assert_ends_aborted(rc, err, "displacement sensor lost for 1.", warnings_from="ERROR pymodbus")
+    bench.close()
+    assert_wire_safe(trace)

@@ -116,7 +116,8 @@ def _control_loop(bench, done: threading.Event) -> None:
     """Fault injection from stdin, one command per line (for tests and demos):
     ``sensor-delay S N`` (N responses late by S s), ``sensor-exception CODE N``,
     ``sensor-corrupt N``, ``sensor-status-error N`` / ``sensor-sentinel N`` (the map's error
-    status / "no measurement" code for N requests), ``open-wire``, ``close-wire``, ``quit``.
+    status / "no measurement" code for N requests), ``sensor-freeze N`` (the same reading for N
+    requests), ``open-wire``, ``close-wire``, ``quit``.
     EOF ends the mock."""
     for line in sys.stdin:
         words = line.split()
@@ -134,6 +135,8 @@ def _control_loop(bench, done: threading.Event) -> None:
                 bench.server.serve_status_error(int(rest[0]))
             elif cmd == "sensor-sentinel":
                 bench.server.serve_sentinel(int(rest[0]))
+            elif cmd == "sensor-freeze":  # the same reading, valid, for N requests
+                bench.server.freeze(int(rest[0]))
             elif cmd in ("open-wire", "close-wire") and bench.device is not None:
                 bench.device.set_open_wire(cmd == "open-wire")
             elif cmd == "quit":

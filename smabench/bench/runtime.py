@@ -61,6 +61,42 @@ class RunResult:
     cause: str = ""  # smabench.bench.tick.CAUSES: completed, operator, interlock, device
 
 
+FROZEN_ABOVE_AF_K = 20.0
+"""A wire estimated from below its As to this far above its Af has transformed (the stress
+shifts the temperatures up by ≈ 15 K at 100 MPa): its position must have changed."""
+
+
+class FrozenSensor:
+    """Finds a frozen displacement sensor: the very same valid reading while the wire's
+    estimated temperature went through its whole transformation (from below As to
+    :data:`FROZEN_ABOVE_AF_K` above Af, or back), which no loaded wire allows. A still wire
+    (no current, or too little to transform) is never taken for a frozen sensor."""
+
+    def __init__(self, as_c: float, af_c: float) -> None:
+        self.low_c, self.high_c = as_c, af_c + FROZEN_ABOVE_AF_K
+        self.value: float | None = None
+        self.t0_s = 0.0
+        self.t_min_c = self.t_max_c = float("nan")
+
+    def update(self, t_s: float, position_mm: float | None, temperature_c: float) -> str:
+        """The reason when frozen, else ``''`` (``position_mm`` None or NaN: not valid)."""
+        if position_mm is None or position_mm != position_mm:
+            return ""
+        if position_mm != self.value:
+            self.value, self.t0_s = position_mm, t_s
+            self.t_min_c = self.t_max_c = temperature_c
+            return ""
+        self.t_min_c = min(self.t_min_c, temperature_c)
+        self.t_max_c = max(self.t_max_c, temperature_c)
+        if self.t_min_c <= self.low_c and self.t_max_c >= self.high_c:
+            return (
+                f"displacement sensor frozen: the same reading {position_mm:.4f} mm for "
+                f"{t_s - self.t0_s:.1f} s while the wire went {self.t_min_c:.0f}–"
+                f"{self.t_max_c:.0f} °C, through its transformation"
+            )
+        return ""
+
+
 class BenchRuntime:
     """Runs one session: call :meth:`run` (blocking) or :meth:`start` (own thread).
 
@@ -89,6 +125,8 @@ class BenchRuntime:
         self.record = record
         self.config = config or RuntimeConfig()
         self.tick = ControlTick(command, self.config)
+        wire = self.config.wire
+        self.frozen = FrozenSensor(wire.as_c, wire.af_c)
         if mode is not None:
             self.set_mode(mode)
         self.on_sample = on_sample
@@ -236,6 +274,15 @@ class BenchRuntime:
                     stop=stop,
                 )
                 if out.row is not None:
+                    frozen = self.frozen.update(
+                        out.row["t_s"], out.row["position_mm"], out.row["temperature_est_C"]
+                    )
+                    if frozen and not out.ended:  # the controller must not act on it
+                        out.row["flags"] = int(out.row["flags"] or 0) | FLAG_SENSOR_INVALID
+                        self.record(out.row)
+                        n += 1
+                        status, reason, cause = "aborted", frozen, "device"
+                        break
                     self.record(out.row)
                     n += 1
                     if self.on_sample is not None:

@@ -95,3 +95,35 @@ def test_sensor_not_answering_ends_the_session_sensor_lost(tmp_path, run_mock, m
     assert_ends_aborted(rc, err, "displacement sensor lost for 1.", warnings_from="ERROR pymodbus")
     bench.close()
     assert_wire_safe(trace)
+
+
+def test_sensor_frozen_while_the_wire_transforms_ends_the_session(tmp_path, run_mock, mock_bench):
+    trace = tmp_path / "trace.csv"
+    bench = mock_bench(trace)
+    # 1.6 A takes the wire through its transformation (1 A under 1 kg stays below As: with a
+    # frozen reading no one can tell, and the check does not claim to)
+    run = run_mock(tmp_path, "s", "--current-a", "1.6", devices=bench.devices)
+    run.wait_progress(0.0)  # the first heating has just begun: the wire is still cold
+    bench.send("sensor-freeze 1000000")  # valid answers, all the same reading from now on
+    rc, out, err = run.finish()
+    assert_ends_aborted(rc, err, "displacement sensor frozen: the same reading")
+    s = load_session(run.folder)
+    meta = s.meta
+    assert meta["status"] == "aborted" and "through its transformation" in meta["end_reason"]
+    frozen_rows = s.data["position_mm"] == s.data["position_mm"][-1]
+    assert frozen_rows.sum() > 50  # it was frozen a while before anything could tell
+    assert int(s.data["flags"][-1]) & FLAG_SENSOR_INVALID  # the row that told is flagged
+    bench.close()
+    assert_wire_safe(trace)
+
+
+def test_a_still_wire_with_a_steady_reading_is_not_taken_for_a_frozen_sensor():
+    from smabench.bench.runtime import FrozenSensor
+
+    f = FrozenSensor(as_c=68.0, af_c=78.0)
+    # no current: the wire rests at 25 °C, the sensor repeats its last digit for a minute
+    assert not any(f.update(0.005 * k, 1.2345, 25.0) for k in range(12_000))
+    # heating that stays below the transformation: no motion, no alarm
+    assert not any(f.update(60 + 0.005 * k, 1.2345, 25.0 + k * 0.01) for k in range(4000))
+    # through the transformation with the same reading: frozen
+    assert "frozen" in f.update(100.0, 1.2345, 120.0)

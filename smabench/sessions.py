@@ -403,6 +403,9 @@ RECORDER_DIED = "the recording process died"
 """``end_reason`` readers give a ``running`` session whose recording process is gone."""
 ROW_BYTES_BUDGET = 160
 """Bytes a samples row takes at most in the contract columns (measured ≈ 75–110)."""
+WALL_CLOCK_STEP_S = 2.0
+"""A wall clock that moved this much more (or less) than the monotonic clock during a session
+was stepped (NTP, an operator): ``session.json`` says by how much (``wall_clock_stepped_s``)."""
 RESERVE_BYTES = 16384
 """Set aside for the closing (cycles.csv's last row, session.json twice during its rewrite)."""
 
@@ -579,6 +582,7 @@ class SessionWriter:
             self._write_whole(self._cycles_fh, (",".join(CYCLE_COLUMNS) + "\n").encode())
             self._summary = _CycleSummary()
         self._last_flush = time.monotonic()
+        self._started_wall_s, self._started_mono_s = time.time(), time.monotonic()
         self.rows_written = 0
         self._sync_due = threading.Event()
         self._closing = False
@@ -789,6 +793,11 @@ class SessionWriter:
         if self.full and self.full not in reason:
             status, reason = "aborted", f"{self.full}; {reason}" if reason else self.full
         self.meta.update(status=status, end_reason=reason, rows=self.rows_written, **extra)
+        self.meta["ended_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        # all timing is monotonic; the wall-clock stamps say when the host's clock was stepped
+        step_s = (time.time() - self._started_wall_s) - (time.monotonic() - self._started_mono_s)
+        if abs(step_s) > WALL_CLOCK_STEP_S:
+            self.meta["wall_clock_stepped_s"] = round(step_s, 1)
         if self.chunk:
             self.meta["sample_files"] = [chunk_name(i) for i in range(self.chunk + 1)]
         try:

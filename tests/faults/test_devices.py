@@ -9,6 +9,7 @@ import signal
 import subprocess
 
 import numpy as np
+import pytest
 
 from smabench.sessions import FLAG_SENSOR_INVALID, load_session
 
@@ -22,6 +23,7 @@ from .conftest import (
 )
 
 
+@pytest.mark.slow
 def test_driver_link_lost_warns_in_true_words_and_aborts(tmp_path, run_mock):
     run = run_mock(tmp_path, "s")
     run.wait_progress(1.0)
@@ -40,6 +42,7 @@ def test_driver_link_lost_warns_in_true_words_and_aborts(tmp_path, run_mock):
     assert len(load_session(run.folder)) == meta["rows"] >= rows_before
 
 
+@pytest.mark.slow
 def test_a_second_program_on_the_driver_port_is_refused_naming_the_holder(tmp_path, run_mock):
     run = run_mock(tmp_path, "s")
     run.wait_progress(1.0)
@@ -63,6 +66,7 @@ def _flags(folder) -> np.ndarray:
     return load_session(folder).data["flags"].astype(int)
 
 
+@pytest.mark.slow
 def test_sensor_modbus_exceptions_flag_rows_then_a_silent_sensor_ends_the_session(
     tmp_path, run_mock, mock_bench
 ):
@@ -84,6 +88,7 @@ def test_sensor_modbus_exceptions_flag_rows_then_a_silent_sensor_ends_the_sessio
     assert_wire_safe(trace)
 
 
+@pytest.mark.slow
 def test_sensor_not_answering_ends_the_session_sensor_lost(tmp_path, run_mock, mock_bench):
     trace = tmp_path / "trace.csv"
     bench = mock_bench(trace)
@@ -97,6 +102,7 @@ def test_sensor_not_answering_ends_the_session_sensor_lost(tmp_path, run_mock, m
     assert_wire_safe(trace)
 
 
+@pytest.mark.slow
 def test_sensor_frozen_while_the_wire_transforms_ends_the_session(tmp_path, run_mock, mock_bench):
     trace = tmp_path / "trace.csv"
     bench = mock_bench(trace)

@@ -38,6 +38,7 @@ def _check_closed(folder, reason: str, rows_before: int) -> None:
     assert session_status(folder) == ("aborted", meta["end_reason"])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "sig, reason",
     [
@@ -59,6 +60,7 @@ def test_signal_during_a_session_closes_it_aborted(tmp_path, run_mock, sig, reas
     assert_wire_safe(trace)
 
 
+@pytest.mark.slow
 def test_a_second_ctrl_c_during_the_shutdown_does_not_cut_the_closing(tmp_path, run_mock):
     trace = tmp_path / "trace.csv"
     run = run_mock(tmp_path, "s", trace=trace)
@@ -77,6 +79,7 @@ def test_a_second_ctrl_c_during_the_shutdown_does_not_cut_the_closing(tmp_path, 
     assert_wire_safe(trace)
 
 
+@pytest.mark.slow
 def test_kill_9_reads_as_aborted_the_recording_process_died(tmp_path, run_mock):
     run = run_mock(tmp_path, "s")
     run.wait_progress(1.0)

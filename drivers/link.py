@@ -52,6 +52,28 @@ class LinkTimeout(LinkError, TimeoutError):  # noqa: N818 (names of the API)
     """No ACK within the timeout and retries, or the port is down."""
 
 
+BY_ID_DIR_ENV = "SMABENCH_SERIAL_BY_ID"
+"""Environment variable naming the folder of stable serial names (default
+``/dev/serial/by-id``, udev's: one symlink per USB adapter, named after its serial number)."""
+
+
+def stable_port_name(port: str) -> str | None:
+    """The stable name (a symlink in ``/dev/serial/by-id``) of the device ``port`` is now, so
+    a reopen finds the adapter again when it comes back under another name (``/dev/ttyUSB0`` →
+    ``/dev/ttyUSB1`` after a replug or a hub reset); None when there is none."""
+    folder = os.environ.get(BY_ID_DIR_ENV, "/dev/serial/by-id")
+    try:
+        real = os.path.realpath(port)
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return None
+    for name in names:
+        path = os.path.join(folder, name)
+        if os.path.realpath(path) == real and path != port:
+            return path
+    return None
+
+
 def lock_holders(port: str) -> list[str]:
     """The processes holding an exclusive lock (``flock``, as pyserial's ``exclusive=True``
     takes) on the serial device ``port``, as "pid N (command line)", from ``/proc/locks``;
@@ -165,6 +187,7 @@ class FramedLink:
         on_resync: Callable[[], object] | None = None,
         owner_priority: int | None = None,
     ) -> None:
+        self._stable_name: str | None = None  # /dev/serial/by-id: followed on a reopen
         if isinstance(port, str):
             self.port_name = port
             self._port_obj = None
@@ -226,6 +249,8 @@ class FramedLink:
             self._ser = self._open_port()
         except (serial.SerialException, OSError, ValueError) as exc:
             raise LinkError(_open_error(self.port_name, exc)) from exc
+        if self._port_obj is None and self._stable_name is None:
+            self._stable_name = stable_port_name(self.port_name)
         self._thread = threading.Thread(
             target=self._run, name=f"FramedLink({self.port_name})", daemon=True
         )
@@ -442,6 +467,12 @@ class FramedLink:
             if not getattr(ser, "is_open", True) and hasattr(ser, "open"):
                 ser.open()
         else:
+            if self._stable_name is not None:  # the adapter back under another device name
+                now_at = os.path.realpath(self._stable_name)
+                if os.path.exists(now_at) and now_at != os.path.realpath(self.port_name):
+                    log.warning("port %s is now %s (%s)", self.port_name, now_at,
+                                self._stable_name)  # fmt: skip
+                    self.port_name = now_at
             ser = serial.serial_for_url(
                 self.port_name,
                 baudrate=p.BAUDRATE,

@@ -133,3 +133,39 @@ def test_a_still_wire_with_a_steady_reading_is_not_taken_for_a_frozen_sensor():
     assert not any(f.update(60 + 0.005 * k, 1.2345, 25.0 + k * 0.01) for k in range(4000))
     # through the transformation with the same reading: frozen
     assert "frozen" in f.update(100.0, 1.2345, 120.0)
+
+
+@pytest.mark.slow
+def test_driver_replugged_under_another_name_is_found_again_by_its_stable_name(
+    tmp_path, mock_bench, monkeypatch
+):
+    """udev's /dev/serial/by-id names an adapter by its serial number whatever ttyUSB it gets:
+    the link follows it on a reopen. The replug: the first bench's pty removed (the mock
+    killed), the stable name moved to a second bench's new pty, as udev does."""
+    import time
+
+    from smabench.drivers.current_source import CurrentSource
+
+    by_id = tmp_path / "by-id"
+    by_id.mkdir()
+    monkeypatch.setenv("SMABENCH_SERIAL_BY_ID", str(by_id))
+    first = mock_bench(tmp_path / "t1.csv")
+    second = mock_bench(tmp_path / "t2.csv")
+    stable = by_id / "usb-FTDI_FT232R_USB_UART_A10KZ3XY-if00-port0"
+    stable.symlink_to(first.driver)
+    source = CurrentSource(first.driver, max_reconnect_attempts=20)
+    try:
+        source.connect()
+        assert source.link_ok
+        first.proc.kill()  # unplugged: its pty is gone
+        first.proc.wait()
+        tmp = by_id / ".new"
+        tmp.symlink_to(second.driver)
+        os.replace(tmp, stable)  # plugged back: another device name, the same stable name
+        deadline = time.monotonic() + 60
+        while not (source.link_ok and source._link.port_name == second.driver):
+            assert time.monotonic() < deadline, "not reconnected through the stable name"
+            time.sleep(0.05)  # polls the condition
+        assert source.ping() > 0  # a round trip to the bench now behind the stable name
+    finally:
+        source.close()

@@ -52,6 +52,62 @@ class LinkTimeout(LinkError, TimeoutError):  # noqa: N818 (names of the API)
     """No ACK within the timeout and retries, or the port is down."""
 
 
+BY_ID_DIR_ENV = "SMABENCH_SERIAL_BY_ID"
+"""Environment variable naming the folder of stable serial names (default
+``/dev/serial/by-id``, udev's: one symlink per USB adapter, named after its serial number)."""
+
+
+def stable_port_name(port: str) -> str | None:
+    """The stable name (a symlink in ``/dev/serial/by-id``) of the device ``port`` is now, so
+    a reopen finds the adapter again when it comes back under another name (``/dev/ttyUSB0`` →
+    ``/dev/ttyUSB1`` after a replug or a hub reset); None when there is none."""
+    folder = os.environ.get(BY_ID_DIR_ENV, "/dev/serial/by-id")
+    try:
+        real = os.path.realpath(port)
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return None
+    for name in names:
+        path = os.path.join(folder, name)
+        if os.path.realpath(path) == real and path != port:
+            return path
+    return None
+
+
+def lock_holders(port: str) -> list[str]:
+    """The processes holding an exclusive lock (``flock``, as pyserial's ``exclusive=True``
+    takes) on the serial device ``port``, as "pid N (command line)", from ``/proc/locks``;
+    empty when none is found (or not on Linux)."""
+    try:
+        st = os.stat(port)
+        with open("/proc/locks", encoding="ascii") as fh:
+            locks = fh.read().splitlines()
+    except OSError:
+        return []
+    want = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    holders = []
+    for line in locks:
+        words = line.split()
+        if len(words) >= 6 and words[1] == "FLOCK" and words[5] == want:
+            pid = words[4]
+            try:
+                with open(f"/proc/{pid}/cmdline", "rb") as fh:
+                    cmd = fh.read().replace(b"\0", b" ").decode(errors="replace").strip()
+            except OSError:
+                cmd = "?"
+            holders.append(f"pid {pid} ({cmd})")
+    return holders
+
+
+def _open_error(port: str, exc: BaseException) -> str:
+    """Why ``port`` could not be opened, naming who holds it when it is locked."""
+    if "exclusively lock" in str(exc):
+        holders = lock_holders(port)
+        who = ", ".join(holders) if holders else "another program"
+        return f"cannot open {port}: in use by {who}"
+    return f"cannot open {port}: {exc}"
+
+
 def type_name(type_: int) -> str:
     """``IDENTIFY`` for a known message type, ``type 0x42`` otherwise."""
     try:
@@ -131,6 +187,7 @@ class FramedLink:
         on_resync: Callable[[], object] | None = None,
         owner_priority: int | None = None,
     ) -> None:
+        self._stable_name: str | None = None  # /dev/serial/by-id: followed on a reopen
         if isinstance(port, str):
             self.port_name = port
             self._port_obj = None
@@ -191,7 +248,9 @@ class FramedLink:
         try:
             self._ser = self._open_port()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise LinkError(f"cannot open {self.port_name}: {exc}") from exc
+            raise LinkError(_open_error(self.port_name, exc)) from exc
+        if self._port_obj is None and self._stable_name is None:
+            self._stable_name = stable_port_name(self.port_name)
         self._thread = threading.Thread(
             target=self._run, name=f"FramedLink({self.port_name})", daemon=True
         )
@@ -408,6 +467,12 @@ class FramedLink:
             if not getattr(ser, "is_open", True) and hasattr(ser, "open"):
                 ser.open()
         else:
+            if self._stable_name is not None:  # the adapter back under another device name
+                now_at = os.path.realpath(self._stable_name)
+                if os.path.exists(now_at) and now_at != os.path.realpath(self.port_name):
+                    log.warning("port %s is now %s (%s)", self.port_name, now_at,
+                                self._stable_name)  # fmt: skip
+                    self.port_name = now_at
             ser = serial.serial_for_url(
                 self.port_name,
                 baudrate=p.BAUDRATE,
@@ -416,6 +481,7 @@ class FramedLink:
                 stopbits=serial.STOPBITS_ONE,
                 timeout=READ_TIMEOUT_S,
                 write_timeout=0.5,
+                exclusive=True,  # no second program (a GUI, a terminal) sends into a session
             )
         self._rx.reset()
         # a lone delimiter ends whatever partial frame the device may have buffered

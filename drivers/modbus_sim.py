@@ -81,6 +81,8 @@ class SensorServer:
                 self._writable.add(a)
         self.writes: list[tuple[int, list[int]]] = []  # (address, values) of every write
         self._raw_override: dict[str, tuple[float, int | None]] = {}
+        self._frozen_count: int | None = 0
+        self._frozen_regs: dict[int, int] | None = None
         self._sources: dict[str, Callable[[], float]] = {}
         self._delay_s = 0.0
         self._delay_count: int | None = 0
@@ -179,9 +181,17 @@ class SensorServer:
         with self._lock:
             self._raw_override[name] = (raw, count)
 
+    def freeze(self, count: int | None = None) -> None:
+        """Serve the same registers (those of the next request) for the next ``count``
+        requests (None: until :meth:`clear_faults`): a sensor whose output froze, still
+        answering, every reading valid."""
+        with self._lock:
+            self._frozen_regs, self._frozen_count = None, count
+
     def clear_faults(self) -> None:
         with self._lock:
             self._delay_count = self._exc_count = self._corrupt_count = 0
+            self._frozen_count, self._frozen_regs = 0, None
             self._raw_override.clear()
 
     @staticmethod
@@ -324,6 +334,13 @@ class SensorServer:
                         del self._raw_override[name]
                     else:
                         self._raw_override[name] = (raw, n - 1)
+            frozen, self._frozen_count = self._take(self._frozen_count)
+            if frozen and self._frozen_regs is None:
+                self._frozen_regs = served
+            elif frozen:
+                served = self._frozen_regs
+            else:
+                self._frozen_regs = None
             for a, v in served.items():
                 registers[a - start_address] = v
             delay, self._delay_count = self._take(self._delay_count)

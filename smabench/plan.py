@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from smabench.sessions import META_FILE, atomic_write_json, write_meta
+from smabench.sessions import META_FILE, atomic_write_json, close_dead_session, write_meta
 
 log = logging.getLogger(__name__)
 
@@ -381,6 +381,10 @@ def execute(
         if entry["status"] == "done":
             continue
         if entry["session"]:  # cut short by a crash, or failed: kept, linked, run anew
+            if Path(entry["session"]).is_dir():  # killed: its session.json says so from now on
+                was, why = close_dead_session(entry["session"])
+                print(f"{st['name']}: its last session {Path(entry['session']).name} {was}: "
+                      f"{why}", flush=True)  # fmt: skip
             entry["interrupted"].append(entry["session"])
             entry["session"] = None
         loaded = state.get("loaded_kg")

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import logging
@@ -389,18 +390,157 @@ def _num(value: Any, default: float = math.nan) -> float:
         return default
 
 
+class DiskFullError(OSError):
+    """The session folder's file system filled up: the samples end at the last whole row
+    (``lost_lines``: lines of the failed write that were not kept)."""
+
+    lost_lines: int = 0
+    reason: str = "disk full"
+
+
+RESERVE_FILE = ".close-reserve"
+"""A few kB the writer sets aside at the start and frees to close a session on a full disk."""
+LOCK_FILE = ".recording.lock"
+"""Held (``flock``) by the recording process while a session is running; gone at its end."""
+RECORDER_DIED = "the recording process died"
+"""``end_reason`` readers give a ``running`` session whose recording process is gone."""
+ROW_BYTES_BUDGET = 160
+"""Bytes a samples row takes at most in the contract columns (measured ≈ 75–110)."""
+WALL_CLOCK_STEP_S = 2.0
+"""A wall clock that moved this much more (or less) than the monotonic clock during a session
+was stepped (NTP, an operator): ``session.json`` says by how much (``wall_clock_stepped_s``)."""
+RESERVE_BYTES = 16384
+"""Set aside for the closing (cycles.csv's last row, session.json twice during its rewrite)."""
+
+
+def _boot_id() -> str:
+    try:
+        return Path("/proc/sys/kernel/random/boot_id").read_text().strip()
+    except OSError:
+        return ""
+
+
+def _recorder_alive(folder: Path) -> bool:
+    """Whether a live process holds ``folder``'s recording lock (False: none, or no lock)."""
+    import fcntl
+
+    try:
+        fd = os.open(folder / LOCK_FILE, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True  # unreadable: do not pretend to know
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return True
+    finally:
+        os.close(fd)
+    return False
+
+
+def session_status(folder: str | Path, meta: Mapping[str, Any] | None = None) -> tuple[str, str]:
+    """``(status, end_reason)`` of a session as every reader shows it (the session list, the
+    GUI, ``plan resume``): ``session.json``'s, except that a ``running`` session whose
+    recording process is gone (killed with kill -9, a power cut) is ``aborted`` with the reason
+    :data:`RECORDER_DIED`. ``meta``: ``session.json`` already read (read here when None)."""
+    folder = Path(folder)
+    meta_path = folder / META_FILE
+
+    def read() -> Mapping[str, Any]:
+        try:
+            return json.loads(meta_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return {}
+
+    if meta is None:
+        meta = read()
+    status = str(meta.get("status", ""))
+    if status != "running" or _recorder_alive(folder):
+        return status, str(meta.get("end_reason", ""))
+    meta = read()  # it may have closed between the two reads
+    if meta.get("status") != "running":
+        return str(meta.get("status", "")), str(meta.get("end_reason", ""))
+    return "aborted", RECORDER_DIED
+
+
+def close_dead_session(folder: str | Path) -> tuple[str, str]:
+    """Write into ``session.json`` what :func:`session_status` tells of a ``running`` session
+    whose recording process died (``aborted``, :data:`RECORDER_DIED`, the rows on disk), so
+    every tool reads it so; a live or closed session is left alone. Returns its status and
+    reason."""
+    folder = Path(folder)
+    status, reason = session_status(folder)
+    if status != "aborted" or reason != RECORDER_DIED:
+        return status, reason
+    meta = json.loads((folder / META_FILE).read_text(encoding="utf-8"))
+    rows = 0
+    for path in sample_files(folder):
+        with open(path, "rb") as fh:
+            rows += max(0, sum(1 for line in fh if line.endswith(b"\n")) - 1)
+    meta.update(status=status, end_reason=reason, rows=rows)
+    write_meta(folder, meta)
+    (folder / RESERVE_FILE).unlink(missing_ok=True)
+    (folder / LOCK_FILE).unlink(missing_ok=True)
+    return status, reason
+
+
+def space_needed_bytes(rows: int) -> int:
+    """Free space a session of ``rows`` samples needs (rows, cycles.csv, the closing reserve)."""
+    return int(rows * ROW_BYTES_BUDGET * 1.05) + 2 * RESERVE_BYTES
+
+
+def check_free_space(out_dir: str | Path, rows: int, what: str) -> None:
+    """Raise :class:`SessionError` when the file system holding ``out_dir`` (or its nearest
+    existing parent) cannot take a session of ``rows`` samples (``what``: the plan in words,
+    e.g. "120 s at 200 Hz"), or cannot be written at all (read-only, no permission)."""
+    path = Path(out_dir).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    need = space_needed_bytes(rows)
+    try:
+        st = os.statvfs(path)
+    except OSError as exc:
+        raise SessionError(f"{out_dir}: cannot check free space ({exc.strerror})") from None
+    if st.f_flag & os.ST_RDONLY:
+        raise SessionError(f"{out_dir}: read-only file system; choose another --out")
+    if not os.access(path, os.W_OK):
+        raise SessionError(f"{out_dir}: not writable; choose another --out")
+    free = st.f_bavail * st.f_frsize
+    if free < need:
+        raise SessionError(
+            f"{out_dir}: not enough free space for the session: {what} need "
+            f"{_size(need)}, {_size(free)} free"
+        )
+
+
+def _size(n_bytes: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n_bytes < 1000 or unit == "GB":
+            return f"{n_bytes:.0f} {unit}" if unit == "B" else f"{n_bytes:.1f} {unit}"
+        n_bytes /= 1000
+    return f"{n_bytes:.1f} GB"  # pragma: no cover
+
+
 class SessionWriter:
     """Appends sample rows to ``samples.csv``; hands them to the OS at least every ``flush_s``.
 
-    ``append`` only writes to the file and, when due, flushes Python's buffer to the OS (cheap,
-    and enough for a killed process: the rows are in the page cache). The ``fsync`` to the disk
-    runs on a background thread so that it never stalls the control loop. Use as a context
-    manager or call :meth:`close` with the end status and reason.
+    ``append`` only adds the row to a buffer and, when due, writes the buffer to the file
+    (cheap, and enough for a killed process: the rows are in the page cache). The ``fsync`` to
+    the disk runs on a background thread so that it never stalls the control loop. Use as a
+    context manager or call :meth:`close` with the end status and reason.
 
     Memory stays bounded whatever the length: rows go straight to the file, a new chunk file
     starts (at the next cycle boundary) once ``chunk_rows`` rows are in the current one (at
     ``2 × chunk_rows`` whatever the cycle), and ``cycles.csv`` gets one summary row per finished
     cycle (when the columns include ``cycle``).
+
+    Faults: while running the writer holds :data:`LOCK_FILE` (``flock``), so a reader tells a
+    live session from a dead one (:func:`session_status`); it sets :data:`RESERVE_FILE` aside;
+    a full file system raises :class:`DiskFullError` from :meth:`append` with the samples cut
+    back to the last whole row, and :meth:`close` frees the reserve first so the closing fits.
     """
 
     def __init__(
@@ -416,44 +556,126 @@ class SessionWriter:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=False)
         self.columns = list(columns)
-        self.meta: dict[str, Any] = {**meta, "status": "running", "columns": self.columns}
+        self.meta: dict[str, Any] = {
+            **meta,
+            "status": "running",
+            "columns": self.columns,
+            "recorder": {"pid": os.getpid(), "host": os.uname().nodename, "boot_id": _boot_id()},
+        }
         self.flush_s = flush_s
         self.chunk_rows = chunk_rows
-        write_meta(self.folder, self.meta)
+        self._lock_fd = self._hold_lock()  # before session.json says "running"
+        try:
+            self._set_reserve_aside()
+            write_meta(self.folder, self.meta)
+        except BaseException:
+            self._release_lock()
+            raise
         self._header = ",".join(self.columns) + "\n"
         self._lock = threading.Lock()  # the fsync thread vs a rotation
+        self._buf: list[str] = []
+        self.full = ""  # why rows can no longer be written ("disk full"), "" while they can
         self.chunk = 0
         self._chunk_n = 0
         self._fh = self._open_chunk(0)
         self._cycles_fh = None
         self._summary: _CycleSummary | None = None
         if "cycle" in self.columns:
-            self._cycles_fh = open(  # noqa: SIM115 - closed in close()
-                self.folder / CYCLES_FILE, "w", encoding="utf-8", newline=""
-            )
-            self._cycles_fh.write(",".join(CYCLE_COLUMNS) + "\n")
-            self._cycles_fh.flush()
+            self._cycles_fh = open(self.folder / CYCLES_FILE, "wb", buffering=0)  # noqa: SIM115
+            self._write_whole(self._cycles_fh, (",".join(CYCLE_COLUMNS) + "\n").encode())
             self._summary = _CycleSummary()
         self._last_flush = time.monotonic()
+        self._started_wall_s, self._started_mono_s = time.time(), time.monotonic()
         self.rows_written = 0
         self._sync_due = threading.Event()
         self._closing = False
         self._syncer = threading.Thread(target=self._sync_loop, name="session-fsync", daemon=True)
         self._syncer.start()
 
+    # ------------------------------------------------------------------ faults
+    def _hold_lock(self) -> int:
+        import fcntl
+
+        fd = os.open(self.folder / LOCK_FILE, os.O_WRONLY | os.O_CREAT | os.O_CLOEXEC, 0o666)
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        return fd
+
+    def _release_lock(self) -> None:
+        if self._lock_fd >= 0:
+            with contextlib.suppress(OSError):
+                (self.folder / LOCK_FILE).unlink()
+            os.close(self._lock_fd)  # closing the last descriptor releases the flock
+            self._lock_fd = -1
+
+    def _set_reserve_aside(self) -> None:
+        path = self.folder / RESERVE_FILE
+        try:
+            with open(path, "wb") as fh:
+                fh.write(b"\0" * RESERVE_BYTES)
+                fh.flush()
+                os.fsync(fh.fileno())
+        except OSError as exc:
+            path.unlink(missing_ok=True)
+            msg = f"{self.folder}: no room for a session ({exc.strerror})"
+            raise DiskFullError(exc.errno, msg) from None
+
+    def _free_reserve(self) -> None:
+        (self.folder / RESERVE_FILE).unlink(missing_ok=True)
+
+    def _write_whole(self, fh: IO[bytes], data: bytes) -> None:
+        """Write ``data`` (whole lines); on a full disk keep only the whole lines that fit,
+        cut the file back to them, and raise :class:`DiskFullError` (``lost_lines``: how many
+        lines did not fit)."""
+        start = fh.tell()
+        done = 0
+        try:
+            while done < len(data):
+                n = fh.write(data[done:])
+                if not n:
+                    raise OSError(28, os.strerror(28))
+                done += n
+        except OSError as exc:
+            keep = data.rfind(b"\n", 0, done) + 1
+            with contextlib.suppress(OSError):
+                os.ftruncate(fh.fileno(), start + keep)
+                fh.seek(start + keep)
+            full = DiskFullError(exc.errno, exc.strerror)
+            if exc.errno not in (errno.ENOSPC, errno.EDQUOT):
+                full.reason = f"session folder not writable ({exc.strerror})"
+            self.full = full.reason
+            full.lost_lines = data.count(b"\n") - data.count(b"\n", 0, keep)
+            raise full from exc
+
+    # ------------------------------------------------------------------ rows
     def _open_chunk(self, index: int):
-        fh = open(self.folder / chunk_name(index), "w", encoding="utf-8", newline="")  # noqa: SIM115
-        fh.write(self._header)
-        fh.flush()
+        fh = open(self.folder / chunk_name(index), "wb", buffering=0)  # noqa: SIM115
+        try:
+            self._write_whole(fh, self._header.encode())
+        except BaseException:
+            fh.close()
+            raise
         return fh
 
+    def _write_buffer(self) -> None:
+        """The buffered rows to the OS (whole rows only; :class:`DiskFullError` on a full disk)."""
+        if not self._buf:
+            return
+        data = "".join(self._buf).encode()
+        self._buf = []
+        try:
+            self._write_whole(self._fh, data)
+        except DiskFullError as exc:
+            self.rows_written -= exc.lost_lines
+            self._chunk_n -= exc.lost_lines
+            raise
+
     def _rotate(self) -> None:
+        self._write_buffer()
         new = self._open_chunk(self.chunk + 1)
         with self._lock:
             old, self._fh = self._fh, new
             self.chunk += 1
             self._chunk_n = 0
-        old.flush()
         os.fsync(old.fileno())
         old.close()
         log.info("%s: samples continue in %s", self.folder, chunk_name(self.chunk))
@@ -461,11 +683,15 @@ class SessionWriter:
     def _cycle_done(self) -> None:
         summary = self._summary
         if summary is not None and summary.rows and self._cycles_fh is not None:
-            self._cycles_fh.write(summary.line() + "\n")
-            self._cycles_fh.flush()
+            self._write_whole(self._cycles_fh, (summary.line() + "\n").encode())
 
     def append(self, row: Mapping[str, Any]) -> None:
-        """Append one sample; missing columns become empty cells."""
+        """Append one sample; missing columns become empty cells. :class:`DiskFullError` when the
+        file system is full (the session must end: :meth:`close` still fits)."""
+        if self.full:
+            full = DiskFullError(errno.ENOSPC, self.full)
+            full.reason = self.full
+            raise full
         summary = self._summary
         new_cycle = summary is not None and row.get("cycle") != summary.cycle
         if self._chunk_n >= self.chunk_rows and (
@@ -477,14 +703,14 @@ class SessionWriter:
             summary.reset(row.get("cycle"))
         if summary is not None:
             summary.add(row)
-        self._fh.write(format_row(row, self.columns) + "\n")
+        self._buf.append(format_row(row, self.columns) + "\n")
         self._chunk_n += 1
         self.rows_written += 1
         now = time.monotonic()
         if now - self._last_flush >= self.flush_s:
-            self._fh.flush()
-            self._sync_due.set()
             self._last_flush = now
+            self._write_buffer()
+            self._sync_due.set()
 
     def _sync_loop(self) -> None:
         while not self._closing:
@@ -528,37 +754,59 @@ class SessionWriter:
                 if summary is not None:
                     summary.add_block(data, i, j)
                 cells = [_format_column(col, i, j) for col in cols]
-                self._fh.write("\n".join(map(",".join, zip(*cells, strict=True))) + "\n")
+                self._buf.append("\n".join(map(",".join, zip(*cells, strict=True))) + "\n")
                 self._chunk_n += j - i
                 self.rows_written += j - i
                 i = j
+                self._write_buffer()
         self.flush()
-        if self._cycles_fh is not None:
-            self._cycles_fh.flush()
 
     def flush(self) -> None:
         """Rows to the disk now (blocking)."""
-        self._fh.flush()
+        self._write_buffer()
         os.fsync(self._fh.fileno())
 
     def close(self, status: str = "completed", reason: str = "", **extra: Any) -> None:
-        """Flush rows and rewrite ``session.json`` with the end status and reason."""
+        """Write the rows left and rewrite ``session.json`` with the end status and reason.
+
+        On a full disk (:attr:`full`, or filling up now) the reserve is freed first, the rows
+        that do not fit are dropped at a whole row, and the session ends ``aborted`` with the
+        reason "disk full" (added to ``reason`` when it says something else)."""
         if self._fh.closed:
             return
         self._closing = True
         self._sync_due.set()
         self._syncer.join()
-        self.flush()
+        if self.full:
+            self._free_reserve()
+        try:
+            self.flush()
+        except DiskFullError:
+            self._free_reserve()
+        with contextlib.suppress(OSError):
+            os.fsync(self._fh.fileno())
         self._fh.close()
         if self._cycles_fh is not None:
-            self._cycle_done()
-            self._cycles_fh.flush()
-            os.fsync(self._cycles_fh.fileno())
+            with contextlib.suppress(DiskFullError):
+                self._cycle_done()
+            with contextlib.suppress(OSError):
+                os.fsync(self._cycles_fh.fileno())
             self._cycles_fh.close()
+        self._free_reserve()
+        if self.full and self.full not in reason:
+            status, reason = "aborted", f"{self.full}; {reason}" if reason else self.full
         self.meta.update(status=status, end_reason=reason, rows=self.rows_written, **extra)
+        self.meta["ended_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        # all timing is monotonic; the wall-clock stamps say when the host's clock was stepped
+        step_s = (time.time() - self._started_wall_s) - (time.monotonic() - self._started_mono_s)
+        if abs(step_s) > WALL_CLOCK_STEP_S:
+            self.meta["wall_clock_stepped_s"] = round(step_s, 1)
         if self.chunk:
             self.meta["sample_files"] = [chunk_name(i) for i in range(self.chunk + 1)]
-        write_meta(self.folder, self.meta)
+        try:
+            write_meta(self.folder, self.meta)
+        finally:
+            self._release_lock()
 
     def __enter__(self) -> SessionWriter:
         return self

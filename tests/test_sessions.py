@@ -58,8 +58,8 @@ def test_unclosed_session_is_readable_and_truncated_tail_dropped(tmp_path):
     for i in range(10):
         w.append({"t_s": float(i), "current_A": 1.0, "position_mm": float(i)})
     # simulate a crash in the middle of writing a row
-    w._fh.write("10.0,,1.0")
-    w._fh.flush()
+    with open(folder / "samples.csv", "a", encoding="utf-8") as fh:
+        fh.write("10.0,,1.0")
     s = load_session(folder)
     assert len(s) == 10
     assert json.loads((folder / "session.json").read_text())["status"] == "running"

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from smabench import settings as settings_schema
-from smabench.bench.session_run import RunSettings, run_session
+from smabench.bench.session_run import RunSettings, check_session_space, run_session
 from smabench.protocols import Protocol
 
 log = logging.getLogger(__name__)
@@ -116,7 +116,8 @@ def _control_loop(bench, done: threading.Event) -> None:
     """Fault injection from stdin, one command per line (for tests and demos):
     ``sensor-delay S N`` (N responses late by S s), ``sensor-exception CODE N``,
     ``sensor-corrupt N``, ``sensor-status-error N`` / ``sensor-sentinel N`` (the map's error
-    status / "no measurement" code for N requests), ``open-wire``, ``close-wire``, ``quit``.
+    status / "no measurement" code for N requests), ``sensor-freeze N`` (the same reading for N
+    requests), ``open-wire``, ``close-wire``, ``quit``.
     EOF ends the mock."""
     for line in sys.stdin:
         words = line.split()
@@ -134,6 +135,8 @@ def _control_loop(bench, done: threading.Event) -> None:
                 bench.server.serve_status_error(int(rest[0]))
             elif cmd == "sensor-sentinel":
                 bench.server.serve_sentinel(int(rest[0]))
+            elif cmd == "sensor-freeze":  # the same reading, valid, for N requests
+                bench.server.freeze(int(rest[0]))
             elif cmd in ("open-wire", "close-wire") and bench.device is not None:
                 bench.device.set_open_wire(cmd == "open-wire")
             elif cmd == "quit":
@@ -170,7 +173,8 @@ class MockProcess:
             text=True,
             bufsize=1,
             preexec_fn=die_with_parent,
-        )
+            start_new_session=True,  # the bench's stand-in: a terminal's Ctrl-C or hang-up
+        )  # reaches the session (which makes it safe), not the devices
         found: dict[str, str] = {}
         deadline = time.monotonic() + timeout_s
         while True:
@@ -368,7 +372,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     mock = None
     mock_args: list[str] = []
     source = sensor = None
-    signal.signal(signal.SIGTERM, _interrupt)  # ends like Ctrl-C: devices safe, session closed
+    check_session_space(settings)  # a full or read-only --out is refused before any device
+    for sig in (signal.SIGTERM, signal.SIGHUP):  # before the session: end like Ctrl-C (130);
+        signal.signal(sig, _interrupt)  # during it: aborted, closed, 1 (run_session's handlers)
     try:
         if args.mock:
             mock_args = [

@@ -46,6 +46,7 @@ from smabench.sessions import (
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
     EventLog,
+    DiskFullError,
 )
 
 log = logging.getLogger(__name__)
@@ -79,6 +80,42 @@ class RunResult:
     cause: str = ""  # smabench.bench.tick.CAUSES: completed, operator, interlock, device
 
 
+FROZEN_ABOVE_AF_K = 20.0
+"""A wire estimated from below its As to this far above its Af has transformed (the stress
+shifts the temperatures up by ≈ 15 K at 100 MPa): its position must have changed."""
+
+
+class FrozenSensor:
+    """Finds a frozen displacement sensor: the very same valid reading while the wire's
+    estimated temperature went through its whole transformation (from below As to
+    :data:`FROZEN_ABOVE_AF_K` above Af, or back), which no loaded wire allows. A still wire
+    (no current, or too little to transform) is never taken for a frozen sensor."""
+
+    def __init__(self, as_c: float, af_c: float) -> None:
+        self.low_c, self.high_c = as_c, af_c + FROZEN_ABOVE_AF_K
+        self.value: float | None = None
+        self.t0_s = 0.0
+        self.t_min_c = self.t_max_c = float("nan")
+
+    def update(self, t_s: float, position_mm: float | None, temperature_c: float) -> str:
+        """The reason when frozen, else ``''`` (``position_mm`` None or NaN: not valid)."""
+        if position_mm is None or position_mm != position_mm:
+            return ""
+        if position_mm != self.value:
+            self.value, self.t0_s = position_mm, t_s
+            self.t_min_c = self.t_max_c = temperature_c
+            return ""
+        self.t_min_c = min(self.t_min_c, temperature_c)
+        self.t_max_c = max(self.t_max_c, temperature_c)
+        if self.t_min_c <= self.low_c and self.t_max_c >= self.high_c:
+            return (
+                f"displacement sensor frozen: the same reading {position_mm:.4f} mm for "
+                f"{t_s - self.t0_s:.1f} s while the wire went {self.t_min_c:.0f}–"
+                f"{self.t_max_c:.0f} °C, through its transformation"
+            )
+        return ""
+
+
 class BenchRuntime:
     """Runs one session: call :meth:`run` (blocking) or :meth:`start` (own thread).
 
@@ -109,6 +146,8 @@ class BenchRuntime:
         self.record = record
         self.config = config or RuntimeConfig()
         self.tick = ControlTick(command, self.config)
+        wire = self.config.wire
+        self.frozen = FrozenSensor(wire.as_c, wire.af_c)
         if mode is not None:
             self.set_mode(mode)
         self.on_sample = on_sample
@@ -117,6 +156,8 @@ class BenchRuntime:
         self.events = events
         self._estop = threading.Event()
         self._stop = threading.Event()
+        self._abort_reason: str | None = None
+        self._abort_cause = "host"
         self._thread: threading.Thread | None = None
         self.result: RunResult | None = None
 
@@ -193,6 +234,18 @@ class BenchRuntime:
     def stop(self) -> None:
         """Ask the loop to finish after the current tick (devices made safe)."""
         self._stop.set()
+
+    def abort(self, reason: str, cause: str = "host") -> None:
+        """End the session as ``aborted`` with ``reason`` at the next tick (devices made safe);
+        safe to call from a signal handler (it only sets a flag). The first reason stays."""
+        if self._abort_reason is None:
+            self._abort_cause = cause
+            self._abort_reason = reason
+
+    @property
+    def aborting(self) -> bool:
+        """Whether :meth:`abort` was called."""
+        return self._abort_reason is not None
 
     def start(self) -> threading.Thread:
         self._thread = threading.Thread(target=self.run, name="bench-runtime", daemon=True)
@@ -288,9 +341,20 @@ class BenchRuntime:
                 next_tick += period_s
                 if last_tick is not None:
                     periods.append(now - last_tick)
+                    if now - last_tick > cfg.link_timeout_s:  # the whole loop was held up
+                        status, cause = "aborted", "host"
+                        reason = (
+                            f"the recording process stalled for {now - last_tick:.2f} s "
+                            "(stopped, or starved of CPU): longer than the current driver's "
+                            "setpoint lease, which turns its output off"
+                        )
+                        break
                 last_tick = now
                 if self.on_tick is not None:
                     self.on_tick(self.tick.ticks, (now - t0) * cfg.time_scale)
+                if self._abort_reason is not None:
+                    status, reason, cause = "aborted", self._abort_reason, self._abort_cause
+                    break
                 estop, stop = self._estop.is_set(), self._stop.is_set()
                 sample = self.sensor.read_or_flag()
                 out = self.tick.step(
@@ -305,6 +369,15 @@ class BenchRuntime:
                 )
                 if out.row is not None:
                     last_row = out.row
+                    frozen = self.frozen.update(
+                        out.row["t_s"], out.row["position_mm"], out.row["temperature_est_C"]
+                    )
+                    if frozen and not out.ended:  # the controller must not act on it
+                        out.row["flags"] = int(out.row["flags"] or 0) | FLAG_SENSOR_INVALID
+                        self.record(out.row)
+                        n += 1
+                        status, reason, cause = "aborted", frozen, "device"
+                        break
                     self.record(out.row)
                     n += 1
                     if self.on_sample is not None:
@@ -313,6 +386,9 @@ class BenchRuntime:
                     status, reason, cause = out.status, out.reason, out.cause
                     break
                 self.source.set_current(out.current_a)
+        except DiskFullError as exc:  # the folder's file system is full: rows end at a whole one
+            log.info("session folder full: %s", exc)
+            status, reason, cause = "aborted", exc.reason, "host"
         except Exception as exc:  # any failure ends the session safely, with the reason
             log.exception("runtime loop failed")
             status, reason, cause = "aborted", f"{type(exc).__name__}: {exc}", "device"
@@ -330,6 +406,8 @@ class BenchRuntime:
                     # reason (its own shutdown) before it goes silent: it was lost, not tripped
                     reason = DRIVER_LOST_AFTER_OFF
                     self._event("session_end_reason", None, reason=reason)
+            except DiskFullError:  # the rows end at the last whole one; the closing fits
+                log.info("after-end rows stopped: the session's folder is full")
             except Exception:  # the session is over and safe: the proof is best effort
                 log.exception("recording after the end failed")
             finally:

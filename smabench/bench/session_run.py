@@ -8,8 +8,12 @@ setting gets a clear error and nothing is sent. The session folder is created wi
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import os
+import signal
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -19,7 +23,12 @@ from typing import Any
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
 from smabench.physics.wire import PRESETS
 from smabench.protocols import Protocol, ProtocolSettings
-from smabench.sessions import SCHEMA_VERSION, EventLog, SessionWriter
+from smabench.sessions import (
+    SCHEMA_VERSION,
+    EventLog,
+    SessionWriter,
+    check_free_space,
+)
 from smabench.settings import (
     SETTINGS,
     SettingError,
@@ -32,7 +41,14 @@ from smabench.settings import (
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SCHEMA_VERSION", "RunSettings", "run_session", "session_meta"]
+__all__ = [
+    "SCHEMA_VERSION",
+    "RunSettings",
+    "check_session_space",
+    "planned_duration_s",
+    "run_session",
+    "session_meta",
+]
 
 _TOP_LEVEL = (
     "load_kg", "rate_hz", "wire_preset", "current_limit_a", "temperature_limit_c",
@@ -189,6 +205,90 @@ def session_meta(
     }
 
 
+def planned_duration_s(settings: RunSettings) -> float:
+    """Upper bound of a session's duration in device time, s: the protocol's own bound (every
+    cooling to its timeout, every rest to its end), capped by ``max_duration_s``."""
+    p = settings.protocol
+    n = max(1, int(p.cycles))
+    if settings.controller is not None:
+        bound = p.lead_in_s + n * p.period_s
+    elif p.name == "cycles":
+        bound = n * (p.heat_s + p.cool_timeout_s)
+    elif p.name == "incomplete":  # partial coolings, then the last one to its timeout
+        bound = n * (p.heat_s + max(p.partial_cool_s, p.cool_timeout_s))
+    elif p.name == "inner":
+        bound = n * (p.heat_s + max(p.inner_cool_s, p.cool_timeout_s))
+    elif p.name == "step":  # each level held
+        bound = max(1, len(p.levels_a)) * p.hold_s
+    elif p.name == "ramp":  # up and down
+        bound = n * 2 * p.ramp_s
+    else:
+        bound = settings.max_duration_s
+    return float(min(bound, settings.max_duration_s))
+
+
+def check_session_space(settings: RunSettings) -> None:
+    """Refuse (:class:`smabench.sessions.SessionError`, a ValueError) a session whose folder's
+    file system cannot hold its planned duration's rows, or cannot be written at all; called
+    before any device is opened."""
+    duration_s = planned_duration_s(settings)
+    rows = math.ceil(settings.rate_hz * duration_s / max(settings.time_scale, 1e-9)) + 1
+    check_free_space(
+        settings.out_dir, rows, f"{duration_s:g} s planned at {settings.rate_hz:g} Hz ({rows} rows)"
+    )
+
+
+SIGNAL_REASONS = {
+    signal.SIGINT: "interrupted (SIGINT, Ctrl-C)",
+    signal.SIGTERM: "terminated (SIGTERM)",
+    signal.SIGHUP: "the terminal or the connection closed (SIGHUP)",
+}
+"""Why a session ended, per signal the recording process got."""
+
+
+@contextlib.contextmanager
+def _signals_end_session(runtime: BenchRuntime):
+    """While the session runs (main thread only): SIGINT, SIGTERM and SIGHUP end it as aborted
+    with :data:`SIGNAL_REASONS` (the loop makes the devices safe and the writer closes the
+    session); a further signal during that shutdown is ignored, so the closing is never cut.
+    After a signal the handlers stay in place (the process is ending); otherwise the previous
+    ones come back. SIGHUP also points the standard streams that are terminals at /dev/null,
+    so the closing lines do not fail on a terminal that is gone."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list[int] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        if got:
+            log.info("signal %d during the shutdown: ignored, the session is closing", signum)
+            return
+        got.append(signum)
+        if signum == signal.SIGHUP:
+            _detach_from_dead_terminal()
+        runtime.abort(
+            SIGNAL_REASONS.get(signum, f"signal {signum}"),
+            "operator" if signum == signal.SIGINT else "host",
+        )
+
+    previous = {sig: signal.signal(sig, handler) for sig in SIGNAL_REASONS}
+    try:
+        yield
+    finally:
+        if not got:
+            for sig, old in previous.items():
+                signal.signal(sig, old)
+
+
+def _detach_from_dead_terminal() -> None:
+    with contextlib.suppress(OSError):
+        null = os.open(os.devnull, os.O_WRONLY)
+        for fd in (1, 2):
+            if os.isatty(fd):
+                os.dup2(null, fd)
+        os.close(null)
+
+
 def run_session(
     settings: RunSettings,
     source: Any,
@@ -207,6 +307,7 @@ def run_session(
     called before the loop starts (to e-stop, stop or switch modes from another thread).
     """
     folder = settings.folder()
+    check_session_space(settings)
     if command is None:
         command = (
             settings.build_controller()
@@ -227,22 +328,31 @@ def run_session(
         events=EventLog(folder),
     )  # fmt: skip
     result = None
-    try:
-        if on_start is not None:
-            on_start(runtime)
-        result = runtime.run()
-    finally:
-        if result is None:
-            writer.close("aborted", "interrupted")
-        else:
-            periods = result.periods_s
-            extra = {"samples": result.samples, "missed_deadlines": result.missed_deadlines}
-            if periods.size:
-                extra["period_ms"] = {
-                    "mean": float(periods.mean() * 1e3),
-                    "p99": float(sorted(periods)[int(0.99 * (periods.size - 1))] * 1e3),
-                }
-            if describe is not None:  # gains, adapted model and switches as they ended
-                extra["controller_end"] = describe()
-            writer.close(result.status, result.reason, **extra)
+    with _signals_end_session(runtime):
+        try:
+            if on_start is not None:
+                on_start(runtime)
+            result = runtime.run()
+        finally:
+            _close(writer, result, describe)
     return folder, result
+
+
+def _close(writer: SessionWriter, result: RunResult | None, describe: Any) -> None:
+    """``session.json`` with the end status, reason and loop figures (``result`` None: the
+    loop never ran to its end)."""
+    if result is None:
+        writer.close("aborted", "interrupted")
+        return
+    periods = result.periods_s
+    extra = {"samples": result.samples, "missed_deadlines": result.missed_deadlines}
+    if periods.size:
+        extra["period_ms"] = {
+            "mean": float(periods.mean() * 1e3),
+            "p99": float(sorted(periods)[int(0.99 * (periods.size - 1))] * 1e3),
+        }
+    if describe is not None:  # gains, adapted model and switches as they ended
+        extra["controller_end"] = describe()
+    writer.close(result.status, result.reason, **extra)
+    if writer.full and writer.full not in result.reason:  # the closing found it full
+        result.status, result.reason = "aborted", writer.meta["end_reason"]

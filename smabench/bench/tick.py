@@ -69,10 +69,11 @@ OUTPUT_OFF_UNEXPLAINED = "current driver output turned off by the device"
 """The end reason when the driver's output went off with no fault it names (the runtime renames
 it a lost driver when the link then goes silent)."""
 
-CAUSES = ("completed", "operator", "interlock", "device")
+CAUSES = ("completed", "operator", "interlock", "device", "host")
 """Why a session ended: the source finished; e-stop or stop; an interlock (current,
 temperature, position, broken wire, maximum duration: running again would trip it again or is
-unsafe); a device problem (a lost sensor or driver link, a driver fault or its output off)."""
+unsafe); a device problem (a lost sensor or driver link, a driver fault or its output off);
+the host (a full disk, a signal to the recording process: running again does not help)."""
 
 POSITION_INVALID_BITS = FLAGS_POSITION_INVALID | FLAG_SENSOR_STATUS
 """Sample flags that make a position invalid: link problems and the sensor's own error bits."""
@@ -230,7 +231,17 @@ class ControlTick:
             flags |= FLAG_TELEMETRY_STALE
         elif fault and fault != self._reported_fault:  # output on: a sensor fault, degraded
             self._reported_fault = fault
-            log.warning("current driver reports %s; the output is on, the session goes on", fault)
+            if "link lost" in fault:  # the output was on at its last report, 0.25 s from end
+                log.warning(
+                    "current driver reports %s; its last telemetry (%.2f s ago) had the output "
+                    "on: the session aborts unless telemetry returns within %.2f s",
+                    fault,
+                    telemetry_age_s,
+                    cfg.link_timeout_s,
+                )
+            else:
+                log.warning("current driver reports %s; the output is on, the session goes on",
+                            fault)  # fmt: skip
         current_a = telemetry.current_a if telemetry is not None else math.nan
         voltage_v = telemetry.voltage_v if telemetry is not None else None
         ambient_c = telemetry.ambient_c if telemetry is not None else cfg.ambient_c

@@ -23,6 +23,7 @@ from smabench.gui.fitjob import fit_session, replay_columns
 from smabench.gui.link import SampleBuffer
 from smabench.gui.plots import LoopPlot, TimePlots
 from smabench.gui.worker import ComputeWorker
+from smabench.sessions import session_status
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +116,7 @@ def read_session_rows(root: Path) -> list[SessionRow]:
         started = str(meta.get("started_at", ""))[:19].replace("T", " ")
         load = meta.get("load_kg")
         rows.append(SessionRow(folder, started, load if isinstance(load, (int, float)) else None,
-                               name, str(meta.get("status", "–")),
+                               name, session_status(folder, meta)[0] or "–",
                                meta_path.stat().st_mtime))  # fmt: skip
     rows.sort(key=lambda r: r.mtime, reverse=True)
     return rows
@@ -167,7 +168,8 @@ class ReplayView(QtWidgets.QWidget):
             f"{str(meta.get('started_at', ''))[:19].replace('T', ' ')} · "
             f"{'–' if load is None else f'{load:g} kg'} · "
             f"{proto.get('name', '–') if isinstance(proto, dict) else proto} · "
-            f"{meta.get('status', '–')} · {len(session)} samples, {n_cycles} cycle(s) · "
+            f"{session_status(self.folder, meta)[0] or '–'} · {len(session)} samples, "
+            f"{n_cycles} cycle(s) · "
             f"folder {self.folder}"
         )
         self.fit_text.setPlainText("")

@@ -173,13 +173,12 @@ def test_atomic_write_leaves_the_old_file_on_error(tmp_path):
 
 
 def test_flag_bits_are_defined_once_with_the_format():
-    import smabench.bench.runtime as runtime
     import smabench.sessions as sessions
     from smabench.drivers.displacement import FLAG_NAMES as SENSOR_BITS
 
-    assert runtime.FLAG_SENSOR_INVALID is sessions.FLAG_SENSOR_INVALID
     bits = list(sessions.FLAG_NAMES)
-    assert len(bits) == len(set(bits)) == len(SENSOR_BITS) + 4
+    assert len(bits) == len(set(bits)) == len(SENSOR_BITS) + 5
+    assert sorted(sessions.RUNTIME_FLAG_NAMES) == [1 << k for k in range(8, 13)]  # bits 8-12
     assert all(b & sessions.SENSOR_FLAGS_MASK for b in SENSOR_BITS)
     assert not any(b & sessions.SENSOR_FLAGS_MASK for b in sessions.RUNTIME_FLAG_NAMES)
     assert sessions.describe_flags(sessions.FLAG_INTERLOCK | 0x01) == "timeout|interlock"

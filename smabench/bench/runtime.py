@@ -45,8 +45,8 @@ from smabench.sessions import (
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
-    EventLog,
     DiskFullError,
+    EventLog,
 )
 
 log = logging.getLogger(__name__)

@@ -120,11 +120,11 @@ def _read_wrdata(path: Path) -> dict[str, np.ndarray]:
     table = np.loadtxt(path, skiprows=1, ndmin=2)
     out: dict[str, np.ndarray] = {"scale": table[:, 0]}
     names = header[1:]
-    if table.shape[1] == len(names) + 1:  # real data
+    uniq = list(dict.fromkeys(names))
+    if len(uniq) == len(names):  # real data: one column per vector
         for i, name in enumerate(names):
             out[name] = table[:, i + 1]
-    else:  # complex data: real and imaginary column per vector (names repeat once)
-        uniq = list(dict.fromkeys(names))
+    else:  # complex data: a real and an imaginary column per vector (its name twice)
         for i, name in enumerate(uniq):
             out[name] = table[:, 1 + 2 * i] + 1j * table[:, 2 + 2 * i]
     return out

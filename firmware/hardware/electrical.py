@@ -115,9 +115,9 @@ class Electrical:
 
     @property
     def current_adc_full_scale_a(self) -> float:
-        """Fast path: the current at which ADC0 saturates (its reference), A."""
+        """Fast path: the current at which ADC0 saturates on the lowest AVcc, A."""
         cs = self["current_sense"]
-        return cs["adc_reference_v"] / (self.current_amplifier_gain * self.shunt_ohm)
+        return cs["adc_reference_min_v"] / (self.current_amplifier_gain * self.shunt_ohm)
 
     @property
     def precise_current_a_per_lsb(self) -> float:

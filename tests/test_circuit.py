@@ -172,6 +172,13 @@ def test_dc_transfer_and_step_match_electrical_toml():
 
 
 # ------------------------------------------------------------------ loop stability
+# DC operating points with the cut closed: the latch, the NOR gates and the eFuse's soft start
+# form a bistable loop that ngspice's DC solver does not settle; their outputs are held (through
+# the gates' own 50 Ω) as D7's toggling and a cleared latch hold them. The cut's own behaviour is
+# simulated in transient below.
+CUT_CLOSED = ["V_wdfix wdt_h 0 DC 3.6", "V_enfix en 0 DC 4.8", "V_clfix clamp 0 DC 0"]
+
+
 def op_fixture_ohm(current_a: float) -> float:
     """A resistor across R21 that sets the DC setpoint to ``current_a`` with D9 held high (the
     setpoint filter is outside the sink's loop, so the loop gain is the real one)."""
@@ -190,8 +197,7 @@ def test_sink_loop_phase_margin_is_45_degrees_or_more(current_a, rwire):
     deck = Deck(
         params={"vpsu": SUPPLY_V, "vusb": vusb, "rwire": rwire},
         pins={"d7_wdi": "DC 0", "d4_clr_n": "DC 0", "d8_en_n": "DC 0", "d9_pwm": f"DC {vusb}"},
-        fixtures=[f"R_opfix sp1 sensem {op_fixture_ohm(current_a):.6g}",
-                  "V_wdfix wdt_h 0 DC 3.6"],  # the pump as D7's toggling keeps it (no AC here)
+        fixtures=[f"R_opfix sp1 sensem {op_fixture_ohm(current_a):.6g}", *CUT_CLOSED],
         analysis=["op"],
         vectors=["v(r1a)", "v(r1b)"],
     )
@@ -214,13 +220,68 @@ def test_sink_loop_phase_margin_is_45_degrees_or_more(current_a, rwire):
     assert 1e3 < f[k] < 1e6  # crossover well above the setpoint filter, below the op-amp's GBW
 
 
+# ------------------------------------------------------------------ wire voltage after calibration
+WIRE_CORNER = {  # INA132 at its offset limit with a 0.1 % network mismatch; the 1:2 mismatched
+    "XU4     wm_s wp_s ref125 ina_o v5 0 INA132":
+        "XU4     wm_s wp_s ref125 ina_o v5 0 INA132 params: vos=250u mism=1m",
+    "R66     ain0 0 10k": "R66     ain0 0 10.01k",
+}
+
+
+def wire_reading(current_a: float, rwire: float) -> tuple[float, float]:
+    """(ADS1115 AIN0−AIN1 in V, true voltage between the sense clamps in V) at ``current_a``."""
+    vusb = 4.8
+    on = current_a > 0.0
+    deck = Deck(params={"vpsu": SUPPLY_V, "vusb": vusb, "rwire": rwire},
+                pins={"d7_wdi": "DC 0", "d4_clr_n": "DC 0", "d8_en_n": "DC 0",
+                      "d9_pwm": f"DC {vusb if on else 0.0}"},
+                fixtures=CUT_CLOSED
+                + ([f"R_opfix sp1 sensem {op_fixture_ohm(current_a):.6g}"] if on else []),
+                substitutions=WIRE_CORNER, analysis=["op"],
+                vectors=["v(ain0)", "v(ain1)", "v(wp_s)", "v(wm_s)"])  # fmt: skip
+    r = run(deck)
+    return float(r["v(ain0)"][0] - r["v(ain1)"][0]), float(r["v(wp_s)"][0] - r["v(wm_s)"][0])
+
+
+@needs_ngspice
+def test_wire_resistance_within_0_1_percent_after_offset_and_gain_calibration():
+    """Issue 25: ≤ 0.1 % of R after calibration at 0.2 A, on the shortest wire (the smallest
+    voltage), with the difference amplifier at its offset limit and its network and the 1:2
+    dividers mismatched. Offset at zero current (output enabled, setpoint 0: the common mode of
+    operation), gain against a meter across the sense clamps at 1 A."""
+    rwire = 0.3
+    off_v, _ = wire_reading(0.0, rwire)
+    assert abs(off_v) > 50e-6  # the corner does put an offset in (else this test proves nothing)
+    ads_v, true_v = wire_reading(1.0, rwire)
+    gain = true_v / (ads_v - off_v)
+    assert abs(gain - 1.0 / ELECTRICAL["precise_adc"]["wire_gain"]) > 1e-4  # and a gain error
+    for current_a in (0.2, 0.5, 2.0):
+        ads_v, true_v = wire_reading(current_a, rwire)
+        measured_v = (ads_v - off_v) * gain
+        assert measured_v == pytest.approx(true_v, rel=1e-3), f"{current_a} A"
+        # without calibration the same reading is several times further off at 0.2 A
+        if current_a == 0.2:
+            raw_v = ads_v / ELECTRICAL["precise_adc"]["wire_gain"]
+            assert abs(raw_v / true_v - 1.0) > 2e-3
+
+
 # ------------------------------------------------------------------ the cut
 FAULT_AT_S = 20e-3
+
+
+WATCHDOG_SLOW_CORNER = {  # the slowest decay: CW2 +10 %, RW1/RW2 +1 %, pumped from a 5.0 V pin
+    "CW2     wdt_h 0 220n": "CW2     wdt_h 0 242n",
+    "RW1     wdt_h wdt_div 49.9k": "RW1     wdt_h wdt_div 50.4k",
+    "RW2     wdt_div 0 49.9k": "RW2     wdt_div 0 50.4k",
+}
 
 
 def fault_deck(kind: str, vusb: float = 4.8) -> Deck:
     """Full-scale PWM (2.73 A: the highest the MCU can ask, below the 2.99 A trip), a fault at
     20 ms; for the watchdog cases the D7 toggling stops there."""
+    substitutions: dict[str, str] = {}
+    if kind == "mcu-hang-high-slow-corner":
+        substitutions, vusb, kind = WATCHDOG_SLOW_CORNER, 5.0, "mcu-hang-high"
     pins = startup_pins(vusb, f"DC {vusb}")
     fixtures: list[str] = [".model SW_FAULT SW(Vt=2.5 Vh=0.1 Ron=5m Roff=1e9)",
                            f"V_fault fault 0 PWL(0 0 {FAULT_AT_S} 0 {FAULT_AT_S + 1e-6} 5)"]
@@ -252,6 +313,7 @@ def fault_deck(kind: str, vusb: float = 4.8) -> Deck:
                             f"{t_c} {vusb} {t_c + 1e-6} 0 {t_c + 50e-6} 0 {t_c + 51e-6} {vusb})")
     return Deck(params={"vpsu": SUPPLY_V, "vusb": vusb, "rwire": 0.44}, pins=pins,
                 fixtures=fixtures, estop=estop, analysis=[f"tran 2u {end} uic"],
+                substitutions=substitutions,
                 vectors=["v(wp_s)", "v(wm_s)", "v(d6_trip)", "v(en)", "v(a1_vmon)"])  # fmt: skip
 
 
@@ -261,6 +323,7 @@ FAULT_LIMITS_S = {
     "estop": ELECTRICAL["cut"]["comparator_off_max_s"],
     "mcu-hang-high": ELECTRICAL["cut"]["watchdog_off_max_s"],
     "mcu-hang-low": ELECTRICAL["cut"]["watchdog_off_max_s"],
+    "mcu-hang-high-slow-corner": ELECTRICAL["cut"]["watchdog_off_max_s"],
 }
 
 
@@ -285,3 +348,25 @@ def test_the_hardware_cut_ends_every_fault_in_time():
         assert r["v(en)"][-1] < 0.5, kind
         assert r["v(a1_vmon)"][-1] < 0.05, kind
         print(f"{kind}: current below {OFF_A * 1e3:.0f} mA {t_off * 1e3:.3f} ms after the fault")
+
+
+@needs_ngspice
+@pytest.mark.slow
+def test_the_trip_is_cleared_only_by_the_mcu_once_the_cause_is_gone():
+    """E-stop pressed at 20 ms, released at 26 ms: the current stays off (releasing restores
+    nothing); a clear pulse while pressed (23 ms) does nothing; the clear at 30 ms, cause gone,
+    brings the current back."""
+    vusb = 4.8
+    pins = startup_pins(vusb, f"DC {vusb}")
+    pulses = " ".join(f"{t} {vusb} {t + 1e-6} 0 {t + 50e-6} 0 {t + 51e-6} {vusb}"
+                      for t in (CLEAR_AT_S, 23e-3, 30e-3))
+    pins["d4_clr_n"] = f"PWL(0 {vusb} {pulses})"
+    deck = Deck(params={"vpsu": SUPPLY_V, "vusb": vusb, "rwire": 0.44}, pins=pins,
+                estop="PWL(0 0 20m 0 20.001m 5 26m 5 26.001m 0)",
+                analysis=["tran 2u 48m uic"], vectors=["v(wp_s)", "v(wm_s)", "v(d6_trip)"])
+    r = run(deck)
+    t, wire_a = r["scale"], (r["v(wp_s)"] - r["v(wm_s)"]) / 0.44
+    assert np.max(np.abs(wire_a[(t > 20.5e-3) & (t < 30e-3)])) < OFF_A  # C12 drains ~0.2 ms
+    assert np.all(r["v(d6_trip)"][(t > 20.1e-3) & (t < 30e-3)] > 4.0)
+    assert np.all(r["v(d6_trip)"][t > 30.1e-3] < 0.5)
+    assert np.mean(wire_a[t > 46e-3]) == pytest.approx(ELECTRICAL.setpoint_full_scale_a, rel=0.01)

@@ -6,18 +6,27 @@
 #define ELEC_SHUNT_MOHM 100u /* four-terminal shunt, mΩ */
 #define ELEC_CURRENT_MAX_MA 2500u /* design maximum, mA */
 #define ELEC_DISSIPATION_MAX_MW 10000u /* MOSFET dissipation limit, mW */
-#define ELEC_SUPPLY_NOMINAL_MV 5000u /* wire supply, mV */
-#define ELEC_SOURCE_MOHM 60u /* supply source + leads + fuse resistance, mΩ */
+#define ELEC_SUPPLY_NOMINAL_MV 3600u /* wire supply, mV */
+#define ELEC_SOURCE_MOHM 102u /* supply source + leads + fuse + clamps + eFuse resistance, mΩ */
 #define ELEC_MOSFET_VDS_MIN_MV 150u /* headroom the sink needs at 2.5 A, mV */
-#define ELEC_ADC_REF_MV 5000u /* ADC reference (AVcc), mV */
+#define ELEC_ADC_REF_MV 5000u /* ADC reference AVcc, nominal, mV (measure it: ELEC_REFERENCE_MV on A3) */
+#define ELEC_REFERENCE_MV 4096u /* REF3040 on ADC3: AVcc = ELEC_REFERENCE_MV * 1024 / counts(A3), mV */
+#define ELEC_REFERENCE_ADC_CHANNEL 3u /* ADC channel of the REF3040 */
 #define ELEC_SUPPLY_MONITOR_DIV_Q16 32768u /* supply → ADC1 divider, Q16 */
-#define ELEC_SETPOINT_UA_PER_COUNT_Q8 665770u /* sink current per PWM count, µA·256 */
-#define ELEC_SETPOINT_FILTER_TAU_US 1000u /* each of the two PWM-filter poles, µs */
-#define ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 698324u /* fast path: wire current per ADC0 count, µA·256 */
+#define ELEC_SETPOINT_UA_PER_COUNT_Q8 682229u /* sink current per PWM count, µA·256 */
+#define ELEC_SETPOINT_FILTER_TAU_US 1004u /* equal-pole equivalent of the PWM filter (mean delay / 2), µs */
+#define ELEC_SETPOINT_FILTER_TAU1_US 1104u /* PWM filter, slower pole, µs */
+#define ELEC_SETPOINT_FILTER_TAU2_US 904u /* PWM filter, faster pole, µs */
+#define ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 1136364u /* fast path: wire current per ADC0 count, µA·256 */
 #define ELEC_CURRENT_OVERSAMPLE 4u /* ADC0 conversions averaged per tick */
 #define ELEC_ADS1115_ADDRESS 72u /* 7-bit I²C address */
-#define ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 32000u /* wire voltage per LSB (through the 1:2 dividers), µV·256 */
+#define ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 32000u /* wire voltage per LSB (INA132, then 1:2 on AIN0 and AIN1), µV·256 */
+#define ELEC_ADS1115_WIRE_PGA 2u /* ADS1115 PGA code, wire channel */
+#define ELEC_ADS1115_WIRE_CAL_PGA 5u /* ADS1115 PGA code, wire channel at calibration currents */
 #define ELEC_ADS1115_SHUNT_NA_PER_LSB 78125u /* wire current per LSB of the shunt channel, nA */
+#define ELEC_ADS1115_SHUNT_PGA 5u /* ADS1115 PGA code, shunt channel */
+#define ELEC_TRIP_SINK_MA 2990u /* hardware cut: comparator U7A on the shunt, mA */
+#define ELEC_TRIP_SUPPLY_MA 3262u /* hardware cut: comparator U7B on U10's IMON, mA */
 #define ELEC_NTC_R25_OHM 10000u /* ambient NTC at 25 °C, Ω */
 #define ELEC_NTC_BETA_K 3988u /* NTC B25/85, K */
 #define ELEC_NTC_FIXED_OHM 10000u /* NTC divider's fixed resistor, Ω */

@@ -20,35 +20,58 @@ _mod = sys.modules["_electrical"] = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(_mod)
 
 
+_PGA_CODES = {6.144: 0, 4.096: 1, 2.048: 2, 1.024: 3, 0.512: 4, 0.256: 5}
+
+
+def _pga(fsr_v: float) -> int:
+    """ADS1115 config-register PGA field (bits 11:9) for a full-scale range (TI SBAS444)."""
+    return _PGA_CODES[round(fsr_v, 3)]
+
+
 def render() -> str:
     e = _mod.load_electrical(HERE / "electrical.toml")
     sk, cs, pa, nt, su = e["sink"], e["current_sense"], e["precise_adc"], e["ntc"], e["supply"]
     mon = e["supply_monitor"]
+    tau1_s, tau2_s = e.setpoint_filter_poles_s
     rows = [
         ("ELEC_SHUNT_MOHM", round(sk["shunt_ohm"] * 1000), "four-terminal shunt, mΩ"),
         ("ELEC_CURRENT_MAX_MA", round(sk["current_max_a"] * 1000), "design maximum, mA"),
         ("ELEC_DISSIPATION_MAX_MW", round(sk["dissipation_max_w"] * 1000),
          "MOSFET dissipation limit, mW"),
         ("ELEC_SUPPLY_NOMINAL_MV", round(su["wire_supply_v"] * 1000), "wire supply, mV"),
-        ("ELEC_SOURCE_MOHM", round(su["source_resistance_ohm"] * 1000),
-         "supply source + leads + fuse resistance, mΩ"),
+        ("ELEC_SOURCE_MOHM", round((e.loop_resistance_ohm - e.shunt_ohm) * 1000),
+         "supply source + leads + fuse + clamps + eFuse resistance, mΩ"),
         ("ELEC_MOSFET_VDS_MIN_MV", round(sk["mosfet_vds_min_v"] * 1000),
          "headroom the sink needs at 2.5 A, mV"),
-        ("ELEC_ADC_REF_MV", round(cs["adc_reference_v"] * 1000), "ADC reference (AVcc), mV"),
+        ("ELEC_ADC_REF_MV", round(cs["adc_reference_v"] * 1000),
+         "ADC reference AVcc, nominal, mV (measure it: ELEC_REFERENCE_MV on A3)"),
+        ("ELEC_REFERENCE_MV", round(cs["reference_v"] * 1000),
+         "REF3040 on ADC3: AVcc = ELEC_REFERENCE_MV * 1024 / counts(A3), mV"),
+        ("ELEC_REFERENCE_ADC_CHANNEL", cs["reference_channel"], "ADC channel of the REF3040"),
         ("ELEC_SUPPLY_MONITOR_DIV_Q16", round(mon["divider"] * 65536),
          "supply → ADC1 divider, Q16"),
         ("ELEC_SETPOINT_UA_PER_COUNT_Q8", round(e.setpoint_a_per_count * 1e6 * 256),
          "sink current per PWM count, µA·256"),
         ("ELEC_SETPOINT_FILTER_TAU_US", round(e.setpoint_filter_tau_s * 1e6),
-         "each of the two PWM-filter poles, µs"),
+         "equal-pole equivalent of the PWM filter (mean delay / 2), µs"),
+        ("ELEC_SETPOINT_FILTER_TAU1_US", round(tau1_s * 1e6), "PWM filter, slower pole, µs"),
+        ("ELEC_SETPOINT_FILTER_TAU2_US", round(tau2_s * 1e6), "PWM filter, faster pole, µs"),
         ("ELEC_CURRENT_ADC_UA_PER_COUNT_Q8", round(e.current_adc_a_per_count * 1e6 * 256),
          "fast path: wire current per ADC0 count, µA·256"),
         ("ELEC_CURRENT_OVERSAMPLE", cs["oversample"], "ADC0 conversions averaged per tick"),
         ("ELEC_ADS1115_ADDRESS", pa["i2c_address"], "7-bit I²C address"),
         ("ELEC_ADS1115_WIRE_UV_PER_LSB_Q8", round(e.precise_wire_v_per_lsb * 1e6 * 256),
-         "wire voltage per LSB (through the 1:2 dividers), µV·256"),
+         "wire voltage per LSB (INA132, then 1:2 on AIN0 and AIN1), µV·256"),
+        ("ELEC_ADS1115_WIRE_PGA", _pga(pa["wire_fsr_v"]), "ADS1115 PGA code, wire channel"),
+        ("ELEC_ADS1115_WIRE_CAL_PGA", _pga(pa["wire_cal_fsr_v"]),
+         "ADS1115 PGA code, wire channel at calibration currents"),
         ("ELEC_ADS1115_SHUNT_NA_PER_LSB", round(e.precise_current_a_per_lsb * 1e9),
          "wire current per LSB of the shunt channel, nA"),
+        ("ELEC_ADS1115_SHUNT_PGA", _pga(pa["shunt_fsr_v"]), "ADS1115 PGA code, shunt channel"),
+        ("ELEC_TRIP_SINK_MA", round(e.trip_sink_a * 1000),
+         "hardware cut: comparator U7A on the shunt, mA"),
+        ("ELEC_TRIP_SUPPLY_MA", round(e.trip_supply_a * 1000),
+         "hardware cut: comparator U7B on U10's IMON, mA"),
         ("ELEC_NTC_R25_OHM", round(nt["r25_ohm"]), "ambient NTC at 25 °C, Ω"),
         ("ELEC_NTC_BETA_K", round(nt["beta_k"]), "NTC B25/85, K"),
         ("ELEC_NTC_FIXED_OHM", round(nt["fixed_ohm"]), "NTC divider's fixed resistor, Ω"),

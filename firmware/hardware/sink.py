@@ -1,14 +1,15 @@
 """What the reference linear current sink delivers to the wire (a model for the mock and plant).
 
 The sink regulates the shunt voltage to the filtered PWM setpoint with an analog loop far faster
-than anything the plant sees, so the wire current is the setpoint after the two RC poles of the
-PWM filter, except where the circuit cannot deliver it:
+than anything the plant sees, so the wire current is the setpoint after the two real poles of the
+PWM filter ladder (``Electrical.setpoint_filter_poles_s``), except where the circuit cannot
+deliver it:
 
-- compliance: ``I ≤ (V_supply − V_DS,min) / (R_source + R_wire + R_shunt)`` (a long or hot wire
-  on a sagging supply);
+- compliance: ``I ≤ (V_supply − V_DS,min) / (R_source + R_eFuse + R_wire + R_shunt)`` (a long or
+  hot wire on a sagging supply);
 - supply sag: the supply's source resistance drops ``I·R_source``;
-- ripple: what is left of the 15.6 kHz PWM after two poles at 159 Hz (≈ 1e-4 of the
-  fundamental), as peak-to-peak wire current;
+- ripple: what is left of the 15.6 kHz PWM after the two poles (≈ 2e-5 of the fundamental), as
+  peak-to-peak wire current;
 - the MOSFET's dissipation ``(V_supply − I·(R_source + R_wire + R_shunt))·I`` and junction
   temperature through the heat-sink stack, for the firmware's dissipation limit to act on.
 
@@ -49,12 +50,12 @@ class LinearSink:
     def compliance_a(self, wire_ohm: float) -> float:
         """The largest current the circuit can push through the wire, A."""
         e = self.electrical
-        loop_ohm = e["supply"]["source_resistance_ohm"] + wire_ohm + e.shunt_ohm
+        loop_ohm = e.loop_resistance_ohm + wire_ohm
         return max(0.0, (self.supply_v - e["sink"]["mosfet_vds_min_v"]) / loop_ohm)
 
     def mosfet_power_w(self, current_a: float, wire_ohm: float) -> float:
         e = self.electrical
-        loop_ohm = e["supply"]["source_resistance_ohm"] + wire_ohm + e.shunt_ohm
+        loop_ohm = e.loop_resistance_ohm + wire_ohm
         return max(0.0, (self.supply_v - current_a * loop_ohm) * current_a)
 
     def junction_temperature_c(self, current_a: float, wire_ohm: float, ambient_c: float) -> float:
@@ -69,8 +70,10 @@ class LinearSink:
         if duty <= 0.0 or duty >= 1.0:
             return 0.0
         fundamental_v = 2.0 * sp["pwm_high_v"] / math.pi * math.sin(math.pi * duty)
-        f_ratio = sp["pwm_frequency_hz"] * 2.0 * math.pi * e.setpoint_filter_tau_s
-        attenuation = 1.0 / (1.0 + f_ratio**2)  # two real poles
+        omega = sp["pwm_frequency_hz"] * 2.0 * math.pi
+        attenuation = 1.0
+        for tau in e.setpoint_filter_poles_s:  # two real poles
+            attenuation /= math.hypot(1.0, omega * tau)
         return 2.0 * fundamental_v * attenuation * e.setpoint_divider / e.shunt_ohm
 
     def supply_at_terminals_v(self, current_a: float) -> float:
@@ -84,13 +87,14 @@ class LinearSink:
         delivered current is then limited by the compliance."""
         e = self.electrical
         target_a = max(0.0, duty_counts) * e.setpoint_a_per_count
-        k = math.exp(-dt_s / e.setpoint_filter_tau_s)
+        tau1, tau2 = e.setpoint_filter_poles_s
+        k1, k2 = math.exp(-dt_s / tau1), math.exp(-dt_s / tau2)
         s = self.state
-        # exact zero-order-hold solution of two cascaded first-order poles
+        # exact zero-order-hold solution of two cascaded first-order poles (τ1 ≠ τ2)
         p1_old = s.pole1_a
-        s.pole1_a = target_a + (p1_old - target_a) * k
-        s.pole2_a = target_a + (s.pole2_a - target_a) * k + (p1_old - target_a) * (
-            dt_s / e.setpoint_filter_tau_s) * k  # fmt: skip
+        s.pole1_a = target_a + (p1_old - target_a) * k1
+        s.pole2_a = target_a + (s.pole2_a - target_a) * k2 + (p1_old - target_a) * (
+            tau1 / (tau1 - tau2)) * (k1 - k2)  # fmt: skip
         return min(max(s.pole2_a, 0.0), self.compliance_a(wire_ohm))
 
     def duty_for_current(self, current_a: float) -> float:

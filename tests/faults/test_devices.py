@@ -11,7 +11,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from smabench.sessions import FLAG_SENSOR_INVALID, load_session
+from smabench.sessions import FLAG_AFTER_END, FLAG_SENSOR_INVALID, load_session
 
 from .conftest import (
     END_TIMEOUT_S,
@@ -116,9 +116,12 @@ def test_sensor_frozen_while_the_wire_transforms_ends_the_session(tmp_path, run_
     s = load_session(run.folder)
     meta = s.meta
     assert meta["status"] == "aborted" and "through its transformation" in meta["end_reason"]
-    frozen_rows = s.data["position_mm"] == s.data["position_mm"][-1]
+    live = (s.data["flags"].astype(int) & FLAG_AFTER_END) == 0  # before the after-end rows
+    position = s.data["position_mm"][live]
+    frozen_rows = position == position[-1]
     assert frozen_rows.sum() > 50  # it was frozen a while before anything could tell
-    assert int(s.data["flags"][-1]) & FLAG_SENSOR_INVALID  # the row that told is flagged
+    assert int(s.data["flags"][live][-1]) & FLAG_SENSOR_INVALID  # the row that told is flagged
+    assert abs(s.data["current_A"][-1]) < 0.02  # and the record goes on until the wire is off
     bench.close()
     assert_wire_safe(trace)
 

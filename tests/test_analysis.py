@@ -248,17 +248,46 @@ def test_no_complete_cycle(tmp_path, capsys):
     assert "no complete cycle" in capsys.readouterr().err
 
 
-def test_nan_in_position(tmp_path, capsys):
-    make_session(tmp_path / "s", [], 2.0, n_cycles=3)
-    text = (tmp_path / "s" / "samples.csv").read_text().splitlines()
+def _blank_positions(folder: Path, rows: list[int], flag: int | None = None) -> None:
+    """Empty ``position_mm`` on these data rows (0-based), optionally with a ``flags`` value."""
+    text = (folder / "samples.csv").read_text().splitlines()
     head = text[0].split(",")
     k = head.index("position_mm")
-    cells = text[10].split(",")
-    cells[k] = "nan"
-    text[10] = ",".join(cells)
-    (tmp_path / "s" / "samples.csv").write_text("\n".join(text) + "\n")
+    if flag is not None and "flags" not in head:
+        text = [text[0] + ",flags"] + [ln + ",0" for ln in text[1:]]
+        head.append("flags")
+    for r in rows:
+        cells = text[r + 1].split(",")
+        cells[k] = "nan" if flag is None else ""
+        if flag is not None:
+            cells[head.index("flags")] = str(flag)
+        text[r + 1] = ",".join(cells)
+    (folder / "samples.csv").write_text("\n".join(text) + "\n")
+
+
+def test_invalid_positions_are_masked_not_refused(tmp_path, capsys):
+    """Rows the sensor flagged invalid (or left empty) are masked: counted, simulated through,
+    never compared; the result says how many."""
+    make_session(tmp_path / "s", [], 2.0, n_cycles=3)
+    _blank_positions(tmp_path / "s", [9])  # an empty/NaN cell
+    _blank_positions(tmp_path / "s", [40, 41, 300], flag=1 << 8)  # FLAG_SENSOR_INVALID
+    s = prepare_session(load_session(tmp_path / "s"))
+    assert s.masked_rows == 4
+    assert np.isfinite(s.current).all() and len(s.t) == len(s.pos)  # the input is kept
+    js = tmp_path / "a.json"
+    assert main([str(tmp_path / "s"), "--candidates", "latent_heat", "--workers", "1",
+                 "--json", str(js)]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "4 row(s) with an invalid or empty position masked" in out
+    assert json.loads(js.read_text())["sessions"][0]["masked_rows"] == 4
+
+
+def test_mostly_empty_positions_are_refused(tmp_path, capsys):
+    make_session(tmp_path / "s", [], 2.0, n_cycles=3)
+    n = len(load_session(tmp_path / "s").data["t_s"])
+    _blank_positions(tmp_path / "s", list(range(0, n, 2)) + list(range(1, n // 2, 2)))
     assert main([str(tmp_path / "s")]) == 2
-    assert "NaN" in capsys.readouterr().err
+    assert "valid position_mm" in capsys.readouterr().err
 
 
 def test_one_load_stress_question(tmp_path, capsys):

@@ -16,6 +16,7 @@ from smabench.analysis.candidates import (
 )
 from smabench.analysis.model import Grid
 from smabench.physics.wire import PAPER_WIRE
+from smabench.sessions import FLAGS_POSITION_INVALID
 
 DEFAULT_LENGTH_MM = PAPER_WIRE.length_mm
 DEFAULT_DIAMETER_MM = PAPER_WIRE.diameter_mm
@@ -47,6 +48,17 @@ class SessionData:
     diameter_mm: float
     row_time: bool  # t is the row index (no t_s column)
     notes: list[str]
+    valid: np.ndarray | None = None  # bool per sample: a position to compare with (None: all)
+    cut: dict | None = None  # rows cut before the analysis (a loading ramp, an unloading)
+
+    def __post_init__(self) -> None:
+        if self.valid is None:
+            self.valid = np.isfinite(self.pos)
+
+    @property
+    def masked_rows(self) -> int:
+        """Rows whose position is flagged invalid or empty: simulated through, not compared."""
+        return int(np.count_nonzero(~self.valid))
 
     @property
     def area_m2(self) -> float:
@@ -68,7 +80,7 @@ class SessionData:
 
     def noise_mm(self) -> float:
         """Sensor noise std from the sample-to-sample differences (robust)."""
-        d = np.diff(self.pos)
+        d = np.diff(self.pos[self.valid])
         if len(d) < 3:
             return 0.0
         mad = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
@@ -89,6 +101,32 @@ def _finite_column(data: dict, name: str, path: str) -> np.ndarray:
             f"{rows[0] + 1}); the analysis needs it complete"
         )
     return col
+
+
+MIN_VALID_FRACTION = 0.5
+"""At least this share of the rows must hold a valid position."""
+
+
+def _position(data: dict, path: str) -> tuple[np.ndarray, np.ndarray]:
+    """``position_mm`` and the mask of rows that hold a valid one: rows whose ``flags`` mark the
+    position invalid (:data:`smabench.sessions.FLAGS_POSITION_INVALID`) or whose position is
+    empty are masked (the model is simulated through them; their residuals are dropped)."""
+    pos = np.asarray(data["position_mm"], dtype=float)
+    valid = np.isfinite(pos)
+    flags = data.get("flags")
+    if flags is not None:
+        f = np.asarray(flags, dtype=float)
+        ok = np.isfinite(f)
+        bits = np.zeros(len(f), dtype=np.int64)
+        bits[ok] = f[ok].astype(np.int64)
+        valid &= (bits & FLAGS_POSITION_INVALID) == 0
+    if valid.sum() < max(20, MIN_VALID_FRACTION * len(pos)):
+        raise AnalysisError(
+            f"{path}: only {int(valid.sum())} of {len(pos)} rows hold a valid position_mm "
+            "(empty or flagged invalid); the analysis needs most of them"
+        )
+    pos = np.where(valid, pos, np.nan)
+    return pos, valid
 
 
 def _optional(data: dict, name: str) -> np.ndarray | None:
@@ -185,7 +223,7 @@ def prepare_session(
     n = len(data["position_mm"])
     if n < 20:
         raise AnalysisError(f"{path}: only {n} samples; the analysis needs at least 20")
-    pos = _finite_column(data, "position_mm", path)
+    pos, valid = _position(data, path)
     t = _finite_column(data, "t_s", path)
     row_time = bool(meta.get("t_s_is_row_index"))
     if np.any(np.diff(t) <= 0):
@@ -247,13 +285,14 @@ def prepare_session(
     if stress is None:
         notes.append("load not given: the elastic stroke and any stress question are left "
                      "out (--load-kg)")
-    if np.ptp(pos) <= 0:
+    if np.ptp(pos[valid]) <= 0:
         raise AnalysisError(f"{path}: position_mm never changes")
     name = Path(path).name or path
     return SessionData(
         name=name, path=path, kind=kind, t=t, pos=pos, current=current, voltage=voltage,
         ambient=ambient, temp=temp, cycle=cycle, n_complete=complete, load_kg=load,
         stress_mpa=stress, length_mm=length, diameter_mm=diameter, row_time=row_time, notes=notes,
+        valid=valid,
     )  # fmt: skip
 
 

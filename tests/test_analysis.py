@@ -290,6 +290,26 @@ def test_mostly_empty_positions_are_refused(tmp_path, capsys):
     assert "valid position_mm" in capsys.readouterr().err
 
 
+def test_loading_ramp_and_unloading_are_cut(tmp_path, capsys):
+    """An isobaric test as a testing machine exports it: the loading ramp before the hold
+    stress and the unloading after it are cut (and said), the hold is analysed."""
+    n_ramp, n_hold, n_unload = 150, 1200, 60
+    t = np.arange(n_ramp + n_hold + n_unload) * 0.1
+    temp = np.concatenate((np.full(n_ramp, 30.0), 80.0 - 50.0 * np.cos(np.arange(n_hold) / 100.0),
+                           np.full(n_unload, 30.0)))  # fmt: skip
+    stress = np.concatenate((np.linspace(3.0, 99.0, n_ramp), 100.0 + np.sin(np.arange(n_hold)),
+                             np.linspace(99.0, 2.0, n_unload)))  # fmt: skip
+    pos = 5.0 - 4.0 / (1.0 + np.exp(-(temp - 80.0) / 4.0)) + 0.01 * stress
+    write_session(tmp_path / "s", {"wire": {"length_mm": 100.0, "diameter_mm": 0.38}},
+                  {"t_s": t, "temperature_C": temp, "position_mm": pos, "stress_MPa": stress})
+    s = prepare_session(load_session(tmp_path / "s"))
+    assert s.cut["loading_rows"] == n_ramp - 7  # the last ramp rows are within 5 % of the hold
+    assert 0 < s.cut["unloading_rows"] <= n_unload
+    assert len(s.t) == len(t) - s.cut["loading_rows"] - s.cut["unloading_rows"]
+    assert abs(s.stress_mpa - 100.0) < 0.5  # the hold's stress, not the ramp's
+    assert any("loading ramp" in x for x in s.cut["text"])
+
+
 def test_one_load_stress_question(tmp_path, capsys):
     make_session(tmp_path / "s", [], 2.0, n_cycles=3)
     assert main([str(tmp_path / "s"), "--candidates", "stress_shift"]) == 2

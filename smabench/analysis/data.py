@@ -129,6 +129,45 @@ def _position(data: dict, path: str) -> tuple[np.ndarray, np.ndarray]:
     return pos, valid
 
 
+HOLD_TOLERANCE = 0.05
+"""A row is at the hold stress when its stress is within this fraction of the hold's."""
+
+
+def _cut_to_hold(data: dict) -> tuple[dict, dict | None]:
+    """An isobaric test as a testing machine exports it: the loading ramp up to the hold stress
+    before the cycling (and an unloading after it) is not isobaric cycling. With a
+    ``stress_MPa`` column, the hold stress is its median (the hold is most of the test); the rows
+    before the stress first comes within :data:`HOLD_TOLERANCE` of it and after it last was are
+    cut. Returns the data (cut or as given) and what was cut (None: nothing)."""
+    if "stress_MPa" not in data:
+        return data, None
+    stress = np.asarray(data["stress_MPa"], dtype=float)
+    ok = np.isfinite(stress)
+    if ok.sum() < 20:
+        return data, None
+    hold = float(np.median(stress[ok]))
+    at_hold = ok & (np.abs(stress - hold) <= HOLD_TOLERANCE * abs(hold))
+    if hold <= 0 or not at_hold.any():
+        return data, None
+    k0 = int(np.flatnonzero(at_hold)[0])
+    k1 = int(np.flatnonzero(at_hold)[-1]) + 1
+    n = len(stress)
+    if k0 == 0 and k1 == n:
+        return data, None
+    text = []
+    if k0:
+        text.append(f"the loading ramp: first {k0} row(s), stress {np.nanmin(stress[:k0]):.4g} → "
+                    f"{stress[k0]:.4g} MPa (hold {hold:.4g} MPa)")  # fmt: skip
+    if k1 < n:
+        text.append(f"the unloading: last {n - k1} row(s), after the stress left the hold "
+                    f"{hold:.4g} MPa ± {HOLD_TOLERANCE:.0%}")  # fmt: skip
+    cut = {"loading_rows": k0, "unloading_rows": n - k1, "hold_stress_mpa": hold, "text": text}
+    out = {}
+    for name, col in data.items():
+        out[name] = col[k0:k1] if len(col) == n else col
+    return out, cut
+
+
 def _optional(data: dict, name: str) -> np.ndarray | None:
     col = data.get(name)
     if col is None:
@@ -220,6 +259,7 @@ def prepare_session(
             f"{path}: needs t_s, current_A and position_mm (current-driven) or temperature_C and "
             f"position_mm (thermometer loop); columns: {', '.join(session.columns)}"
         )
+    data, cut = _cut_to_hold(data)
     n = len(data["position_mm"])
     if n < 20:
         raise AnalysisError(f"{path}: only {n} samples; the analysis needs at least 20")
@@ -292,7 +332,7 @@ def prepare_session(
         name=name, path=path, kind=kind, t=t, pos=pos, current=current, voltage=voltage,
         ambient=ambient, temp=temp, cycle=cycle, n_complete=complete, load_kg=load,
         stress_mpa=stress, length_mm=length, diameter_mm=diameter, row_time=row_time, notes=notes,
-        valid=valid,
+        valid=valid, cut=cut,
     )  # fmt: skip
 
 

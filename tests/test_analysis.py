@@ -314,3 +314,20 @@ def test_one_load_stress_question(tmp_path, capsys):
     make_session(tmp_path / "s", [], 2.0, n_cycles=3)
     assert main([str(tmp_path / "s"), "--candidates", "stress_shift"]) == 2
     assert "two loads" in capsys.readouterr().err
+
+
+def test_switching_instants_come_from_the_command():
+    """A bench records the measured current from the driver's last telemetry frame, one or two
+    rows late by a lag that varies; the command is on time. The switching instants are the
+    command's, the level the measurement's; a driver that does not follow keeps its own."""
+    from smabench.analysis.data import commanded_timing
+
+    cmd = np.tile(np.r_[np.zeros(20), np.full(30, 1.4)], 6)
+    rng = np.random.default_rng(0)
+    lag = rng.integers(1, 3, size=len(cmd))  # one or two rows late, varying
+    measured = 0.98 * cmd[np.maximum(np.arange(len(cmd)) - lag, 0)]
+    out, note = commanded_timing(measured, cmd)
+    assert np.allclose(out, 0.98 * cmd, atol=0.02) and "current_set_A" in note
+    assert np.array_equal(commanded_timing(cmd, cmd)[0], cmd)  # ideal: unchanged
+    limited = np.minimum(measured, 0.7)  # a driver at its limit: the measurement stays
+    assert np.array_equal(commanded_timing(limited, cmd)[0], limited)

@@ -168,6 +168,54 @@ def _cut_to_hold(data: dict) -> tuple[dict, dict | None]:
     return out, cut
 
 
+FOLLOW_TOLERANCE = 0.03
+"""The measured current follows the command when their steady levels differ by less than this
+fraction of the largest current (median over the steady rows)."""
+
+
+LOOKAHEAD_ROWS = 3
+"""Rows within which the telemetry shows a commanded current (it reports one or two late)."""
+
+
+def commanded_timing(measured: np.ndarray, commanded: np.ndarray) -> tuple[np.ndarray, str]:
+    """The wire's current, A, per row as applied from that row's time to the next's.
+
+    A bench session records the commanded current (``current_set_A``) at the tick that commands
+    it, and the measured one (``current_A``) from the driver's last telemetry frame: up to a
+    period or two late, by a lag that varies with the frame's phase (on the 5× mock: the
+    recorded switching instants scatter by ±25 ms against the plant's, while the commanded ones
+    stay within 5 ms of a fixed latency; a one-sample error in the switching instant moves a
+    sharp transformation by 0.1–0.3 mm). When the measured current follows the command (its
+    next row, over the rows where the command is steady, equals gain × command within
+    :data:`FOLLOW_TOLERANCE`), the switching instants are taken from the command and the level
+    from the measurement (gain × command); rows where the driver did not deliver (no measured
+    value within :data:`LOOKAHEAD_ROWS` rows reaches half of that) keep the next row's.
+    Otherwise (a driver at its limit, a command that moves every tick) the measured current is
+    returned as it is.
+    Returns the current and a note ('' when unchanged)."""
+    n = len(measured)
+    if n < 3:
+        return measured, ""
+    nxt = np.append(measured[1:], measured[-1])
+    top = float(np.max(np.abs(commanded)))
+    mid = commanded[1:-1]
+    steady = np.zeros(n, dtype=bool)
+    steady[1:-1] = (mid > 0.05 * top) & (mid == commanded[:-2]) & (mid == commanded[2:])
+    if top <= 0 or steady.sum() < 10:
+        return measured, ""
+    gain = float(np.median(nxt[steady] / commanded[steady]))
+    misfit = float(np.median(np.abs(nxt[steady] - gain * commanded[steady])))
+    if not (0.8 <= gain <= 1.25 and misfit <= FOLLOW_TOLERANCE * top):
+        return measured, ""
+    level = gain * commanded
+    ahead = np.maximum.reduce([np.append(measured[j:], np.full(j, measured[-1]))
+                               for j in range(LOOKAHEAD_ROWS + 1)])  # fmt: skip
+    late = (commanded > 0) & (ahead < 0.5 * level)
+    out = np.where(late, nxt, level)
+    return out, (f"current switching instants from current_set_A, level from current_A "
+                 f"(gain {gain:.3f})")
+
+
 def _optional(data: dict, name: str) -> np.ndarray | None:
     col = data.get(name)
     if col is None:
@@ -290,6 +338,11 @@ def prepare_session(
     current = voltage = ambient = temp = None
     if kind == "current":
         current = _finite_column(data, "current_A", path)
+        commanded = _optional(data, "current_set_A")
+        if commanded is not None and np.isfinite(commanded).all():
+            current, note = commanded_timing(current, commanded)
+            if note:
+                notes.append(note)
         voltage = _optional(data, "voltage_V")
         ambient = _optional(data, "ambient_C")
         if ambient is not None and not np.isfinite(ambient).all():

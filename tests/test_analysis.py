@@ -248,20 +248,86 @@ def test_no_complete_cycle(tmp_path, capsys):
     assert "no complete cycle" in capsys.readouterr().err
 
 
-def test_nan_in_position(tmp_path, capsys):
-    make_session(tmp_path / "s", [], 2.0, n_cycles=3)
-    text = (tmp_path / "s" / "samples.csv").read_text().splitlines()
+def _blank_positions(folder: Path, rows: list[int], flag: int | None = None) -> None:
+    """Empty ``position_mm`` on these data rows (0-based), optionally with a ``flags`` value."""
+    text = (folder / "samples.csv").read_text().splitlines()
     head = text[0].split(",")
     k = head.index("position_mm")
-    cells = text[10].split(",")
-    cells[k] = "nan"
-    text[10] = ",".join(cells)
-    (tmp_path / "s" / "samples.csv").write_text("\n".join(text) + "\n")
+    if flag is not None and "flags" not in head:
+        text = [text[0] + ",flags"] + [ln + ",0" for ln in text[1:]]
+        head.append("flags")
+    for r in rows:
+        cells = text[r + 1].split(",")
+        cells[k] = "nan" if flag is None else ""
+        if flag is not None:
+            cells[head.index("flags")] = str(flag)
+        text[r + 1] = ",".join(cells)
+    (folder / "samples.csv").write_text("\n".join(text) + "\n")
+
+
+def test_invalid_positions_are_masked_not_refused(tmp_path, capsys):
+    """Rows the sensor flagged invalid (or left empty) are masked: counted, simulated through,
+    never compared; the result says how many."""
+    make_session(tmp_path / "s", [], 2.0, n_cycles=3)
+    _blank_positions(tmp_path / "s", [9])  # an empty/NaN cell
+    _blank_positions(tmp_path / "s", [40, 41, 300], flag=1 << 8)  # FLAG_SENSOR_INVALID
+    s = prepare_session(load_session(tmp_path / "s"))
+    assert s.masked_rows == 4
+    assert np.isfinite(s.current).all() and len(s.t) == len(s.pos)  # the input is kept
+    js = tmp_path / "a.json"
+    assert main([str(tmp_path / "s"), "--candidates", "latent_heat", "--workers", "1",
+                 "--json", str(js)]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "4 row(s) with an invalid or empty position masked" in out
+    assert json.loads(js.read_text())["sessions"][0]["masked_rows"] == 4
+
+
+def test_mostly_empty_positions_are_refused(tmp_path, capsys):
+    make_session(tmp_path / "s", [], 2.0, n_cycles=3)
+    n = len(load_session(tmp_path / "s").data["t_s"])
+    _blank_positions(tmp_path / "s", list(range(0, n, 2)) + list(range(1, n // 2, 2)))
     assert main([str(tmp_path / "s")]) == 2
-    assert "NaN" in capsys.readouterr().err
+    assert "valid position_mm" in capsys.readouterr().err
+
+
+def test_loading_ramp_and_unloading_are_cut(tmp_path, capsys):
+    """An isobaric test as a testing machine exports it: the loading ramp before the hold
+    stress and the unloading after it are cut (and said), the hold is analysed."""
+    n_ramp, n_hold, n_unload = 150, 1200, 60
+    t = np.arange(n_ramp + n_hold + n_unload) * 0.1
+    temp = np.concatenate((np.full(n_ramp, 30.0), 80.0 - 50.0 * np.cos(np.arange(n_hold) / 100.0),
+                           np.full(n_unload, 30.0)))  # fmt: skip
+    stress = np.concatenate((np.linspace(3.0, 99.0, n_ramp), 100.0 + np.sin(np.arange(n_hold)),
+                             np.linspace(99.0, 2.0, n_unload)))  # fmt: skip
+    pos = 5.0 - 4.0 / (1.0 + np.exp(-(temp - 80.0) / 4.0)) + 0.01 * stress
+    write_session(tmp_path / "s", {"wire": {"length_mm": 100.0, "diameter_mm": 0.38}},
+                  {"t_s": t, "temperature_C": temp, "position_mm": pos, "stress_MPa": stress})
+    s = prepare_session(load_session(tmp_path / "s"))
+    assert s.cut["loading_rows"] == n_ramp - 7  # the last ramp rows are within 5 % of the hold
+    assert 0 < s.cut["unloading_rows"] <= n_unload
+    assert len(s.t) == len(t) - s.cut["loading_rows"] - s.cut["unloading_rows"]
+    assert abs(s.stress_mpa - 100.0) < 0.5  # the hold's stress, not the ramp's
+    assert any("loading ramp" in x for x in s.cut["text"])
 
 
 def test_one_load_stress_question(tmp_path, capsys):
     make_session(tmp_path / "s", [], 2.0, n_cycles=3)
     assert main([str(tmp_path / "s"), "--candidates", "stress_shift"]) == 2
     assert "two loads" in capsys.readouterr().err
+
+
+def test_switching_instants_come_from_the_command():
+    """A bench records the measured current from the driver's last telemetry frame, one or two
+    rows late by a lag that varies; the command is on time. The switching instants are the
+    command's, the level the measurement's; a driver that does not follow keeps its own."""
+    from smabench.analysis.data import commanded_timing
+
+    cmd = np.tile(np.r_[np.zeros(20), np.full(30, 1.4)], 6)
+    rng = np.random.default_rng(0)
+    lag = rng.integers(1, 3, size=len(cmd))  # one or two rows late, varying
+    measured = 0.98 * cmd[np.maximum(np.arange(len(cmd)) - lag, 0)]
+    out, note = commanded_timing(measured, cmd)
+    assert np.allclose(out, 0.98 * cmd, atol=0.02) and "current_set_A" in note
+    assert np.array_equal(commanded_timing(cmd, cmd)[0], cmd)  # ideal: unchanged
+    limited = np.minimum(measured, 0.7)  # a driver at its limit: the measurement stays
+    assert np.array_equal(commanded_timing(limited, cmd)[0], limited)

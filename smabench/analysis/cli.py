@@ -41,6 +41,17 @@ def add_arguments(s: argparse.ArgumentParser) -> None:
     s.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
 
 
+def input_lines(s) -> list[str]:
+    """What the analysis left out of a session: masked rows, cut rows (one line each)."""
+    out = []
+    if s.masked_rows:
+        out.append(f"{s.name}: {s.masked_rows} row(s) with an invalid or empty position masked "
+                   "(simulated through, not compared)")  # fmt: skip
+    for what in (s.cut or {}).get("text", []):
+        out.append(f"{s.name}: cut {what}")
+    return out
+
+
 def add_commands(sub) -> None:
     """Register ``analyze`` on an argparse subparsers object."""
     s = sub.add_parser(
@@ -118,6 +129,9 @@ def cmd_analyze(args: argparse.Namespace) -> int:
         print(f"smabench analyze: assumed: {note}", file=sys.stderr)
     n = sum(len(s.t) for s in sessions)
     say(f"{len(sessions)} session(s), {n} samples, loaded in {t_load:.2f} s")
+    for s in sessions:
+        for line in input_lines(s):
+            print(line)
     cands = None
     if args.candidates:
         cands = [c.strip() for c in args.candidates.split(",") if c.strip()]

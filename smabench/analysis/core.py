@@ -256,8 +256,8 @@ def make_folds(prob: Problem) -> list[Fold]:
     folds = []
     if len(loads) >= 3:
         for li, load in enumerate(loads):
-            test = {s.name: np.full(len(s.t), group(s) == li) for s in sessions}
-            train = {k: ~v for k, v in test.items()}
+            test = {s.name: (group(s) == li) & s.valid for s in sessions}
+            train = {s.name: (group(s) != li) & s.valid for s in sessions}
             folds.append(Fold(f"load {load:.0f} MPa held out", train, test))
         return folds
     whole_cycles = all(len(np.unique(s.cycle)) >= N_BLOCKS for s in sessions)
@@ -271,7 +271,8 @@ def make_folds(prob: Problem) -> list[Fold]:
                 s.name: (blocks[s.name] == b) & (not per_load or group(s) == li)
                 for s in sessions
             }
-            train = {k: ~v for k, v in test.items()}
+            train = {s.name: ~test[s.name] & s.valid for s in sessions}
+            test = {s.name: test[s.name] & s.valid for s in sessions}
             where = f"load {load:.0f} MPa, " if per_load else ""
             folds.append(Fold(f"{where}block {b + 1}/{N_BLOCKS} held out", train, test))
     return folds
@@ -786,7 +787,8 @@ def predict(prob: Problem, fit: FitResult, s: SessionData, train_mask: np.ndarra
         off = fit.offsets[s.name]
     else:  # no training data from this session: zero the sensor on its first samples
         n0 = max(5, len(s.t) // 50)
-        off = float(np.mean(s.pos[:n0] - pos_s[:n0]))
+        first = np.flatnonzero(s.valid)[:n0]
+        off = float(np.mean(s.pos[first] - pos_s[first]))
     return Prediction(pos_s + off, sim.temp[idx], sim.xi[idx])
 
 
@@ -1183,7 +1185,7 @@ def analyse(
         unit_rmse[model], rmse[model] = errors(preds[model])
 
     noise = float(np.median([s.noise_mm() for s in prob.sessions]))
-    stroke = float(np.median([np.percentile(s.pos, 98) - np.percentile(s.pos, 2)
+    stroke = float(np.median([np.nanpercentile(s.pos, 98) - np.nanpercentile(s.pos, 2)
                               for s in prob.sessions]))  # fmt: skip
     try:
         fits["baseline"] = run_all([(fold, "baseline") for fold in folds])

@@ -16,6 +16,7 @@ from smabench.analysis.candidates import (
 )
 from smabench.analysis.model import Grid
 from smabench.physics.wire import PAPER_WIRE
+from smabench.sessions import FLAGS_POSITION_INVALID
 
 DEFAULT_LENGTH_MM = PAPER_WIRE.length_mm
 DEFAULT_DIAMETER_MM = PAPER_WIRE.diameter_mm
@@ -47,6 +48,17 @@ class SessionData:
     diameter_mm: float
     row_time: bool  # t is the row index (no t_s column)
     notes: list[str]
+    valid: np.ndarray | None = None  # bool per sample: a position to compare with (None: all)
+    cut: dict | None = None  # rows cut before the analysis (a loading ramp, an unloading)
+
+    def __post_init__(self) -> None:
+        if self.valid is None:
+            self.valid = np.isfinite(self.pos)
+
+    @property
+    def masked_rows(self) -> int:
+        """Rows whose position is flagged invalid or empty: simulated through, not compared."""
+        return int(np.count_nonzero(~self.valid))
 
     @property
     def area_m2(self) -> float:
@@ -68,7 +80,7 @@ class SessionData:
 
     def noise_mm(self) -> float:
         """Sensor noise std from the sample-to-sample differences (robust)."""
-        d = np.diff(self.pos)
+        d = np.diff(self.pos[self.valid])
         if len(d) < 3:
             return 0.0
         mad = float(1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0))
@@ -89,6 +101,119 @@ def _finite_column(data: dict, name: str, path: str) -> np.ndarray:
             f"{rows[0] + 1}); the analysis needs it complete"
         )
     return col
+
+
+MIN_VALID_FRACTION = 0.5
+"""At least this share of the rows must hold a valid position."""
+
+
+def _position(data: dict, path: str) -> tuple[np.ndarray, np.ndarray]:
+    """``position_mm`` and the mask of rows that hold a valid one: rows whose ``flags`` mark the
+    position invalid (:data:`smabench.sessions.FLAGS_POSITION_INVALID`) or whose position is
+    empty are masked (the model is simulated through them; their residuals are dropped)."""
+    pos = np.asarray(data["position_mm"], dtype=float)
+    valid = np.isfinite(pos)
+    flags = data.get("flags")
+    if flags is not None:
+        f = np.asarray(flags, dtype=float)
+        ok = np.isfinite(f)
+        bits = np.zeros(len(f), dtype=np.int64)
+        bits[ok] = f[ok].astype(np.int64)
+        valid &= (bits & FLAGS_POSITION_INVALID) == 0
+    if valid.sum() < max(20, MIN_VALID_FRACTION * len(pos)):
+        raise AnalysisError(
+            f"{path}: only {int(valid.sum())} of {len(pos)} rows hold a valid position_mm "
+            "(empty or flagged invalid); the analysis needs most of them"
+        )
+    pos = np.where(valid, pos, np.nan)
+    return pos, valid
+
+
+HOLD_TOLERANCE = 0.05
+"""A row is at the hold stress when its stress is within this fraction of the hold's."""
+
+
+def _cut_to_hold(data: dict) -> tuple[dict, dict | None]:
+    """An isobaric test as a testing machine exports it: the loading ramp up to the hold stress
+    before the cycling (and an unloading after it) is not isobaric cycling. With a
+    ``stress_MPa`` column, the hold stress is its median (the hold is most of the test); the rows
+    before the stress first comes within :data:`HOLD_TOLERANCE` of it and after it last was are
+    cut. Returns the data (cut or as given) and what was cut (None: nothing)."""
+    if "stress_MPa" not in data:
+        return data, None
+    stress = np.asarray(data["stress_MPa"], dtype=float)
+    ok = np.isfinite(stress)
+    if ok.sum() < 20:
+        return data, None
+    hold = float(np.median(stress[ok]))
+    at_hold = ok & (np.abs(stress - hold) <= HOLD_TOLERANCE * abs(hold))
+    if hold <= 0 or not at_hold.any():
+        return data, None
+    k0 = int(np.flatnonzero(at_hold)[0])
+    k1 = int(np.flatnonzero(at_hold)[-1]) + 1
+    n = len(stress)
+    if k0 == 0 and k1 == n:
+        return data, None
+    text = []
+    if k0:
+        text.append(f"the loading ramp: first {k0} row(s), stress {np.nanmin(stress[:k0]):.4g} → "
+                    f"{stress[k0]:.4g} MPa (hold {hold:.4g} MPa)")  # fmt: skip
+    if k1 < n:
+        text.append(f"the unloading: last {n - k1} row(s), after the stress left the hold "
+                    f"{hold:.4g} MPa ± {HOLD_TOLERANCE:.0%}")  # fmt: skip
+    cut = {"loading_rows": k0, "unloading_rows": n - k1, "hold_stress_mpa": hold, "text": text}
+    out = {}
+    for name, col in data.items():
+        out[name] = col[k0:k1] if len(col) == n else col
+    return out, cut
+
+
+FOLLOW_TOLERANCE = 0.03
+"""The measured current follows the command when their steady levels differ by less than this
+fraction of the largest current (median over the steady rows)."""
+
+
+LOOKAHEAD_ROWS = 3
+"""Rows within which the telemetry shows a commanded current (it reports one or two late)."""
+
+
+def commanded_timing(measured: np.ndarray, commanded: np.ndarray) -> tuple[np.ndarray, str]:
+    """The wire's current, A, per row as applied from that row's time to the next's.
+
+    A bench session records the commanded current (``current_set_A``) at the tick that commands
+    it, and the measured one (``current_A``) from the driver's last telemetry frame: up to a
+    period or two late, by a lag that varies with the frame's phase (on the 5× mock: the
+    recorded switching instants scatter by ±25 ms against the plant's, while the commanded ones
+    stay within 5 ms of a fixed latency; a one-sample error in the switching instant moves a
+    sharp transformation by 0.1–0.3 mm). When the measured current follows the command (its
+    next row, over the rows where the command is steady, equals gain × command within
+    :data:`FOLLOW_TOLERANCE`), the switching instants are taken from the command and the level
+    from the measurement (gain × command); rows where the driver did not deliver (no measured
+    value within :data:`LOOKAHEAD_ROWS` rows reaches half of that) keep the next row's.
+    Otherwise (a driver at its limit, a command that moves every tick) the measured current is
+    returned as it is.
+    Returns the current and a note ('' when unchanged)."""
+    n = len(measured)
+    if n < 3:
+        return measured, ""
+    nxt = np.append(measured[1:], measured[-1])
+    top = float(np.max(np.abs(commanded)))
+    mid = commanded[1:-1]
+    steady = np.zeros(n, dtype=bool)
+    steady[1:-1] = (mid > 0.05 * top) & (mid == commanded[:-2]) & (mid == commanded[2:])
+    if top <= 0 or steady.sum() < 10:
+        return measured, ""
+    gain = float(np.median(nxt[steady] / commanded[steady]))
+    misfit = float(np.median(np.abs(nxt[steady] - gain * commanded[steady])))
+    if not (0.8 <= gain <= 1.25 and misfit <= FOLLOW_TOLERANCE * top):
+        return measured, ""
+    level = gain * commanded
+    ahead = np.maximum.reduce([np.append(measured[j:], np.full(j, measured[-1]))
+                               for j in range(LOOKAHEAD_ROWS + 1)])  # fmt: skip
+    late = (commanded > 0) & (ahead < 0.5 * level)
+    out = np.where(late, nxt, level)
+    return out, (f"current switching instants from current_set_A, level from current_A "
+                 f"(gain {gain:.3f})")
 
 
 def _optional(data: dict, name: str) -> np.ndarray | None:
@@ -182,10 +307,11 @@ def prepare_session(
             f"{path}: needs t_s, current_A and position_mm (current-driven) or temperature_C and "
             f"position_mm (thermometer loop); columns: {', '.join(session.columns)}"
         )
+    data, cut = _cut_to_hold(data)
     n = len(data["position_mm"])
     if n < 20:
         raise AnalysisError(f"{path}: only {n} samples; the analysis needs at least 20")
-    pos = _finite_column(data, "position_mm", path)
+    pos, valid = _position(data, path)
     t = _finite_column(data, "t_s", path)
     row_time = bool(meta.get("t_s_is_row_index"))
     if np.any(np.diff(t) <= 0):
@@ -212,6 +338,11 @@ def prepare_session(
     current = voltage = ambient = temp = None
     if kind == "current":
         current = _finite_column(data, "current_A", path)
+        commanded = _optional(data, "current_set_A")
+        if commanded is not None and np.isfinite(commanded).all():
+            current, note = commanded_timing(current, commanded)
+            if note:
+                notes.append(note)
         voltage = _optional(data, "voltage_V")
         ambient = _optional(data, "ambient_C")
         if ambient is not None and not np.isfinite(ambient).all():
@@ -247,13 +378,14 @@ def prepare_session(
     if stress is None:
         notes.append("load not given: the elastic stroke and any stress question are left "
                      "out (--load-kg)")
-    if np.ptp(pos) <= 0:
+    if np.ptp(pos[valid]) <= 0:
         raise AnalysisError(f"{path}: position_mm never changes")
     name = Path(path).name or path
     return SessionData(
         name=name, path=path, kind=kind, t=t, pos=pos, current=current, voltage=voltage,
         ambient=ambient, temp=temp, cycle=cycle, n_complete=complete, load_kg=load,
         stress_mpa=stress, length_mm=length, diameter_mm=diameter, row_time=row_time, notes=notes,
+        valid=valid, cut=cut,
     )  # fmt: skip
 
 

@@ -49,12 +49,14 @@ def loop_shift(an: Analysis) -> dict | None:
             continue
         temp = s.temp if s.kind == "thermo" else an.preds[source][s.name].temp_c
         pos = s.pos
-        mid = 0.5 * (np.percentile(pos, 98) + np.percentile(pos, 2))
+        lo, hi = np.nanpercentile(pos, [2, 98])
+        mid = 0.5 * (lo + hi)
         d = np.concatenate(([0.0], np.diff(temp)))
         out = {}
         for tag, sign in (("heating", 1), ("cooling", -1)):
             on = np.sign(d) == sign
-            near = on & (np.abs(pos - mid) < 0.1 * (np.percentile(pos, 98) - np.percentile(pos, 2)))
+            with np.errstate(invalid="ignore"):
+                near = on & (np.abs(pos - mid) < 0.1 * (hi - lo))
             if near.sum() >= 2:
                 out[tag] = float(np.median(temp[near]))
         if len(out) == 2:
@@ -150,6 +152,7 @@ def summary(an: Analysis) -> dict:
                 "complete_cycles": s.n_complete, "load_kg": s.load_kg, "stress_MPa": s.stress_mpa,
                 "wire_length_mm": s.length_mm, "wire_diameter_mm": s.diameter_mm,
                 "resistance": s.resistance_ohm()[1] if s.kind == "current" else None,
+                "masked_rows": s.masked_rows, "cut": s.cut,
                 "notes": s.notes,
             }
             for s in an.prob.sessions
@@ -359,7 +362,8 @@ def write_report(folder: str | Path, an: Analysis, doc: dict) -> Path:
     lines += ["", "## Sessions", ""]
     for s in doc["sessions"]:
         lines.append(f"- `{s['path']}`: {s['kind']}, {s['samples']} samples, "
-                     f"{s['complete_cycles']} complete cycle(s), stress {s['stress_MPa']} MPa"
+                     f"{s['complete_cycles']} complete cycle(s), stress {s['stress_MPa']} MPa, "
+                     f"{s['masked_rows']} row(s) masked"
                      + (f"; {'; '.join(s['notes'])}" if s["notes"] else ""))  # fmt: skip
     lines += ["", f"Timing: {doc['timing_s'].get('total', 0):.1f} s in total.", ""]
     md = folder / "report.md"

@@ -1,0 +1,110 @@
+"""Journey: record on the mock bench (real transports) → ``smabench analyze``, and a tensile
+tester's raw exports imported as exported → ``smabench analyze``.
+
+- nominal recordings (the shipped samples, fresh ones at 1, 2 and 4 kg with and without the
+  thermocouple, and a copy with a real bench's flaws) come out ``none``: nothing is hidden in
+  the mock, so any cause named is a wrong name and ``unexplained`` means our own model misses
+  the plant;
+- a hidden effect (``--mock-effect``) comes out under its name;
+- the raw exports (loading ramp and unloading included) come out ``stress_shift`` with a slope
+  within 15 % of the loops' own shift, and the output says what was cut.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from journeys.flaws import with_bench_flaws
+from journeys.harness import REPO, Installed, Recordings, cycles_session
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # minutes each on a loaded machine
+
+RAW = Path("/work/shared/data/flexinol-instron-raw")
+if not RAW.is_dir():
+    RAW = REPO.parent / "shared" / "data" / "flexinol-instron-raw"
+RAW_COLUMNS = "t_s,position_mm,skip,temperature_C,skip,stress_MPa"
+CYCLES = 3  # few cycles per recording: the journey's CPU time
+
+
+def analyze(installed: Installed, cwd: Path, *sessions: Path, timeout_s: float = 600.0
+            ) -> tuple[dict, str]:  # fmt: skip
+    proc = installed.ok("analyze", *sessions, "--json", "a.json", "--workers", "1", cwd=cwd,
+                        timeout_s=timeout_s)  # fmt: skip
+    return json.loads((cwd / "a.json").read_text()), proc.stdout
+
+
+def shipped(name: str, cwd: Path) -> Path:
+    """A copy of a shipped sample session (the installed package has no sessions/)."""
+    return Path(shutil.copytree(REPO / "sessions" / name, cwd / name))
+
+
+@pytest.mark.parametrize("name", ["mock-cycles-1kg", "mock-cycles-4kg"])
+def test_shipped_nominal_samples_come_out_none(installed: Installed, cwd: Path, name: str):
+    doc, out = analyze(installed, cwd, shipped(name, cwd))
+    assert doc["cause"] == "none", (doc["reason"], out)
+
+
+@pytest.mark.parametrize(
+    ("load_kg", "thermocouple"), [(1.0, False), (2.0, True), (2.0, False), (4.0, True)]
+)
+def test_fresh_nominal_recordings_come_out_none(
+    installed: Installed, recordings: Recordings, cwd: Path, load_kg: float, thermocouple: bool
+) -> None:
+    session = cycles_session(recordings, load_kg, thermocouple=thermocouple, cycles=CYCLES)
+    doc, out = analyze(installed, cwd, session)
+    assert doc["cause"] == "none", (doc["reason"], out)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="open: the flawed copy starts 0.8 s into the first heating (partial first cycle); the "
+    "analysis's heat balance starts the wire at the room's temperature, fully martensitic, so "
+    "the first cycle is mispredicted (baseline held-out 0.41 mm): the start state must be "
+    "fitted from the first samples",
+)
+def test_flawed_nominal_recording_is_masked_and_comes_out_none(
+    installed: Installed, recordings: Recordings, cwd: Path, tmp_path: Path
+) -> None:
+    clean = cycles_session(recordings, 2.0, thermocouple=True, cycles=CYCLES)
+    flawed = with_bench_flaws(clean, tmp_path / "flawed", seed=5)
+    doc, out = analyze(installed, cwd, flawed)
+    masked = doc["sessions"][0]["masked_rows"]
+    assert masked >= 3, doc["sessions"][0]
+    assert f"{masked} row" in out and "masked" in out, out
+    assert doc["cause"] == "none", (doc["reason"], out)
+
+
+def test_a_hidden_effect_is_named(installed: Installed, recordings: Recordings, cwd: Path):
+    session = recordings.mock(
+        "cycles-2kg-latent", "--load-kg", 2.0, "--protocol", "cycles", "--cycles", 4,
+        "--current-a", 1.4, "--mock-speed", 5, "--mock-seed", 1,
+        "--mock-effect", "latent_heat=24000",
+    )  # fmt: skip
+    doc, out = analyze(installed, cwd, session)
+    assert doc["cause"] == "latent_heat", (doc["reason"], out)
+
+
+@pytest.mark.timeout(1800)  # 88 000 samples: 61 s of CPU, 373 s wall at load 18
+@pytest.mark.skipif(not RAW.is_dir(), reason="raw Flexinol exports not beside the repo")
+def test_raw_exports_imported_as_exported_name_the_stress_shift(installed: Installed, cwd: Path):
+    folders = []
+    for mpa in (100, 172):
+        out = cwd / f"raw{mpa}"
+        installed.ok(
+            "import", RAW / f"flexinol_isobaric_trained_{mpa}MPa.csv", "--columns", RAW_COLUMNS,
+            "--wire-length-mm", 107.69, "--wire-diameter-mm", 0.381, "--out", out, cwd=cwd,
+        )  # fmt: skip
+        folders.append(out)
+    doc, out = analyze(installed, cwd, *folders, timeout_s=1500.0)
+    assert doc["cause"] == "stress_shift", (doc["reason"], out)
+    fitted = doc["candidates"]["stress_shift"]["parameter"]["stress_rate_mpa_per_k"]["value"]
+    own = doc["loop_shift_check"]["stress_rate_mpa_per_k"]
+    assert 5.0 < own < 15.0, own
+    assert abs(fitted - own) <= 0.15 * own, (fitted, own)
+    for s in doc["sessions"]:  # what was cut is said, in the JSON and on the console
+        assert s["cut"]["loading_rows"] > 0, s
+    assert "loading ramp" in out, out

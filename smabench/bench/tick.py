@@ -64,10 +64,16 @@ contraction at the driver's 2.5 A hard limit under 1–4 kg runs at 20–23 mm/s
 (0.37–0.42 /s); cooling runs at ≈ 2 mm/s. The broken-wire check allows this much motion over
 the time between two valid samples on top of ``max_jump_mm``."""
 
-CAUSES = ("completed", "operator", "interlock", "device")
+CAUSES = ("completed", "operator", "interlock", "safety", "device")
 """Why a session ended: the source finished; e-stop or stop; an interlock (current,
 temperature, position, broken wire, maximum duration: running again would trip it again or is
-unsafe); a device problem (a lost sensor or driver link, a driver fault or its output off)."""
+unsafe); the driver's own safety trip (:data:`SAFETY_TRIPS`: over-temperature or energy
+budget, over-current, open wire, e-stop, setpoint lease: as unsafe to repeat unattended as an
+interlock); a device problem (a lost sensor or driver link, the output off for another reason:
+only this one may be retried)."""
+
+SAFETY_TRIPS = Flag.OVERTEMP | Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.ESTOP | Flag.LEASE_EXPIRED
+"""Driver flags that turn its output off as a safety function (cause ``safety``)."""
 
 POSITION_INVALID_BITS = FLAGS_POSITION_INVALID | FLAG_SENSOR_STATUS
 """Sample flags that make a position invalid: link problems and the sensor's own error bits."""
@@ -212,12 +218,13 @@ class ControlTick:
         output_on = telemetry is not None and bool(telemetry.flags & Flag.ENABLED)
         if not output_on:
             if not starting:  # the device turned its output off: a fault, an event, e-stop
+                tripped = telemetry is not None and bool(telemetry.flags & SAFETY_TRIPS)
                 return self._end(
                     "aborted",
                     f"current driver fault: {fault}"
                     if fault
                     else "current driver output turned off by the device",
-                    "device",
+                    "safety" if tripped else "device",
                 )
             # a frame from before the session's ENABLE: its events (a host timeout while the
             # session was being set up) are history, not this session's fault

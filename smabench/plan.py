@@ -4,8 +4,10 @@ A plan file has a ``[plan]`` table (name, wire, loop rate, limits, where the ses
 ``[[step]]`` tables (protocol, load, cycles, currents, times, a rest after). :data:`PLAN_SCHEMA`
 and :data:`STEP_SCHEMA` declare every key (type, range, unit, help); anything else is refused
 with the key named. ``smabench plan run PLAN --dry-run`` prints each step's duration (an upper
-bound: cooling until its timeout), peak current and Joule energy in the wire, and checks every
-step against the limits exactly as ``smabench run`` would (nothing is opened).
+bound: cooling until its timeout), peak current, predicted peak wire temperature (the plant's
+heat balance, every cooling at its shortest) and Joule energy in the wire, and checks every
+step against the limits exactly as ``smabench run`` would (nothing is opened); a step whose
+predicted peak exceeds ``temperature_limit_c`` or that may outlast ``max_step_s`` is refused.
 
 Running: each step is one session (``smabench.bench.session_run.run_session`` on devices opened
 as ``smabench run`` does, the mock bench started per step with the step's load). Before a step
@@ -13,7 +15,10 @@ whose load differs from the one hanging, the operator is asked on the terminal t
 A state file ``plan-state.json`` beside the sessions (written atomically before and after every
 step) records each step's status and session; ``smabench plan resume STATE`` continues at the
 first unfinished step after a crash or a power loss (a step cut short is run again as a new
-session, the interrupted one kept and linked). Each session's ``session.json`` gets a ``plan``
+session, the interrupted one kept and linked). Only a lost device link is run again unattended
+(``retries``); an interlock or the driver's safety trip (over-temperature or energy, over-current,
+open wire, e-stop, lease) ends the plan with the step ``tripped``, and ``resume`` asks first
+(``--yes``; refused with one line when nobody answers). Each session's ``session.json`` gets a ``plan``
 entry (plan name, step, index, the previous session), so the sessions of a campaign are linked.
 """
 
@@ -71,8 +76,8 @@ PLAN_SCHEMA: dict[str, Key] = {
     "allow_high_stress": Key(bool, "loads above the wire's long-life stress", default=False),
     "out": Key(str, "parent folder of the plan's folder", default="sessions"),
     "mock_speed": Key(float, "mock bench speed with --mock", "×", 0.1, 100.0, default=1.0),
-    "retries": Key(int, "times a step aborted by a device (not an interlock) is run again "
-                   "unattended, as a new session", "", 0, 10, default=1),
+    "retries": Key(int, "times a step that lost a device link (never a safety trip or an "
+                   "interlock) is run again unattended, as a new session", "", 0, 10, default=1),
 }
 STEP_SCHEMA: dict[str, Key] = {
     "name": Key(str, "step name (unique in the plan)", required=True),

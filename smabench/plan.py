@@ -18,8 +18,9 @@ first unfinished step after a crash or a power loss (a step cut short is run aga
 session, the interrupted one kept and linked). Only a lost device link is run again unattended
 (``retries``); an interlock or the driver's safety trip (over-temperature or energy, over-current,
 open wire, e-stop, lease) ends the plan with the step ``tripped``, and ``resume`` asks first
-(``--yes``; refused with one line when nobody answers). Each session's ``session.json`` gets a ``plan``
-entry (plan name, step, index, the previous session), so the sessions of a campaign are linked.
+(``--yes``; refused with one line when nobody answers). Each session's ``session.json`` gets a
+``plan`` entry (plan name, step, index, the previous session), so the sessions of a campaign are
+linked.
 """
 
 from __future__ import annotations

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from smabench.argtypes import positive
+from smabench.argtypes import positive, sensor_map, sensor_spec, serial_port
 from smabench.drivers import protocol as p
 
 log = logging.getLogger(__name__)
@@ -684,6 +684,8 @@ def _float_list(text: str, what: str) -> list[float]:
         raise CalibrationError(f"{what} {text!r}: give numbers separated by commas") from None
     if not values:
         raise CalibrationError(f"{what}: no numbers in {text!r}")
+    if not all(math.isfinite(v) for v in values):
+        raise CalibrationError(f"{what} {text!r}: NaN and infinities are not readings")
     return values
 
 
@@ -967,7 +969,8 @@ def add_commands(sub: Any) -> None:
         "current",
         help="offset and gain of the current measurement against a multimeter, into EEPROM",
     )
-    s.add_argument("--port", required=True, help="current driver serial port")
+    s.add_argument("--port", type=serial_port, metavar="DEV", required=True,
+                   help="current driver serial port")
     s.add_argument(
         "--currents",
         default=",".join(f"{i:g}" for i in DEFAULT_CURRENTS_A),
@@ -992,7 +995,8 @@ def add_commands(sub: Any) -> None:
     s.set_defaults(func=lambda a: _run(cmd_calibrate_current, a))
 
     s = csub.add_parser("wire", help="cold resistance of the wire (clamps, Kelvin sense leads)")
-    s.add_argument("--port", required=True, help="current driver serial port")
+    s.add_argument("--port", type=serial_port, metavar="DEV", required=True,
+                   help="current driver serial port")
     s.add_argument("--wire-length-mm", type=positive(), required=True, help="between the clamps")
     s.add_argument("--wire-diameter-mm", type=positive(), required=True, help="wire diameter")
     s.add_argument(
@@ -1015,7 +1019,8 @@ def add_commands(sub: Any) -> None:
     s.set_defaults(func=lambda a: _run(cmd_calibrate_wire, a))
 
     s = csub.add_parser("show", help="print the stored results (and the device's calibration)")
-    s.add_argument("--port", help="also read the calibration in this device's EEPROM")
+    s.add_argument("--port", type=serial_port, metavar="DEV",
+                   help="also read the calibration in this device's EEPROM")
     _store_option(s)
     s.set_defaults(func=lambda a: _run(cmd_calibrate_show, a))
 
@@ -1026,8 +1031,11 @@ def add_commands(sub: Any) -> None:
         ("read", cmd_sensor_read, "read the position relative to the tare"),
     ):
         s = tsub.add_parser(name, help=text)
-        s.add_argument("--sensor", required=True, help="tcp:HOST:PORT or rtu:DEV[:BAUD]")
-        s.add_argument("--sensor-map", default="generic-rs485-laser", help="register map")
+        s.add_argument("--sensor", type=sensor_spec, metavar="SPEC", required=True,
+                       help="tcp:HOST:PORT or rtu:DEV[:BAUD]")
+        s.add_argument("--sensor-map", type=sensor_map, default="generic-rs485-laser",
+                       metavar="MAP",
+                       help="register map: a shipped name or a map file")
         s.add_argument(
             "--duration-s", type=positive(), default=TARE_DURATION_S, help="reading time, s (1)"
         )

@@ -12,10 +12,12 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 import numpy as np
 
 from smabench.argtypes import positive
+from smabench.settings import arg_type
 
 log = logging.getLogger("smabench")
 
@@ -31,6 +33,14 @@ def default_data_dir() -> Path:
 
 class CliError(Exception):
     """An error to report as one line on stderr with exit code 2."""
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line on stderr (exit 2), pointing at ``--help``
+    instead of printing the usage block (subparsers inherit the class)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 # Bad input, not a bug: our own error types (SessionError, TextImportError, FitError, effect
@@ -277,8 +287,25 @@ def cmd_bench_link(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+COMMANDS = ("import", "fit", "predict", "simulate", "demo", "export", "mock", "run", "gui",
+            "analyze", "characterize", "plan", "firmware", "calibrate", "sensor", "bench")
+
+
+def command_of(argv: Sequence[str]) -> str | None:
+    """The command ``argv`` names (its first word that is not an option), or None."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The whole command line; with ``command`` only that command's module is imported and
+    registered (each pulls in its own stack: the control law's scipy, the analysis' numba),
+    so that a command starts, and a bad option is refused, in a fraction of the time."""
+
+    def want(*names: str) -> bool:
+        return command is None or command in names
+
+    p = OneLineParser(
         prog="smabench",
         description="Lab-bench application for shape-memory-alloy wire actuators.",
     )
@@ -304,14 +331,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="session folder to create (must not exist)")
     s.set_defaults(func=cmd_import)
 
-    from smabench.fit_cli import add_commands as add_fit_commands
+    if want("fit", "predict"):
+        from smabench.fit_cli import add_commands as add_fit_commands
 
-    add_fit_commands(sub)
+        add_fit_commands(sub)
 
     s = sub.add_parser("simulate", help="simulate heating cycles on the plant into a session")
-    s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
+    s.add_argument("--load-kg", type=arg_type("load_kg"), default=2.0,
+                   help="hanging load, kg (default 2)")
     s.add_argument("--cycles", type=positive(int), default=5, help="number of cycles (5)")
-    s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
+    s.add_argument("--current-a", type=arg_type("protocol.current_a"), default=1.4,
+                   help="heating current, A (1.4)")
     s.add_argument("--heat-s", type=positive(), default=4.0, help="heating time per cycle, s")
     s.add_argument("--cool-s", type=positive(), default=10.0, help="cooling time per cycle, s")
     s.add_argument(
@@ -329,8 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--list-effects", action="store_true", help="list the plant effects and exit")
     s.add_argument("--rate-hz", type=positive(), default=100.0, help="recording rate, Hz (100)")
-    s.add_argument("--noise-mm", type=float, default=0.002, help="sensor noise std, mm")
-    s.add_argument("--seed", type=int, default=0, help="noise seed")
+    s.add_argument("--noise-mm", type=arg_type("sim.noise_mm"), default=0.002,
+                   help="sensor noise std, mm (0 … 10; 0.002)")
+    s.add_argument("--seed", type=arg_type("sim.seed"), default=0, help="noise seed (0 … 1e9)")
     s.add_argument(
         "--wire",
         default="paper",
@@ -343,10 +374,13 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser(
         "demo", help="headless demo: cycles on the mock bench, a session, fits and a loop PNG"
     )
-    s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (2)")
+    s.add_argument("--load-kg", type=arg_type("load_kg"), default=2.0,
+                   help="hanging load, kg (2)")
     s.add_argument("--cycles", type=positive(int), default=3, help="heating cycles (3)")
-    s.add_argument("--speed", type=positive(), default=5.0, help="mock bench speed, × (5)")
-    s.add_argument("--current-a", type=float, default=1.4, help="heating current, A (1.4)")
+    s.add_argument("--speed", type=arg_type("time_scale"), default=5.0,
+                   help="mock bench speed, × (0.1 … 100; 5)")
+    s.add_argument("--current-a", type=arg_type("protocol.current_a"), default=1.4,
+                   help="heating current, A (1.4)")
     s.add_argument("--out", default="sessions", help="parent folder (./sessions)")
     s.set_defaults(func=cmd_demo)
 
@@ -356,27 +390,40 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--columns", help="comma-separated columns to keep, in this order (default all)")
     s.set_defaults(func=cmd_export)
 
-    from smabench.bench.headless import add_commands
-    from smabench.gui.app import add_commands as add_gui_commands
+    if want("mock", "run"):
+        from smabench.bench.headless import add_commands
 
-    add_commands(sub)
-    add_gui_commands(sub)
-    from smabench.analysis.cli import add_commands as add_analysis_commands
+        add_commands(sub)
+    if want("gui"):
+        from smabench.gui.app import add_commands as add_gui_commands
 
-    add_analysis_commands(sub)
-    from smabench.characterize.cli import add_commands as add_characterize_commands
+        add_gui_commands(sub)
+    if want("analyze"):
+        from smabench.analysis.cli import add_commands as add_analysis_commands
 
-    add_characterize_commands(sub)
-    from smabench.plan import add_commands as add_plan_commands
+        add_analysis_commands(sub)
+    if want("characterize"):
+        from smabench.characterize.cli import add_commands as add_characterize_commands
 
-    add_plan_commands(sub)
-    from smabench.firmware_cli import add_commands as add_firmware_commands
+        add_characterize_commands(sub)
+    if want("plan"):
+        from smabench.plan import add_commands as add_plan_commands
 
-    add_firmware_commands(sub)
-    from smabench.calibrate import add_commands as add_calibrate_commands
+        add_plan_commands(sub)
+    if want("firmware"):
+        from smabench.firmware_cli import add_commands as add_firmware_commands
 
-    add_calibrate_commands(sub)
+        add_firmware_commands(sub)
+    if want("calibrate", "sensor"):
+        from smabench.calibrate import add_commands as add_calibrate_commands
 
+        add_calibrate_commands(sub)
+    if want("bench"):
+        _add_bench_commands(sub)
+    return p
+
+
+def _add_bench_commands(sub) -> None:
     s = sub.add_parser("bench", help="benchmarks that print figures")
     bsub = s.add_subparsers(dest="bench", required=True, metavar="WHAT")
     b = bsub.add_parser("model", help="model speed and accuracy, plant speed")
@@ -420,16 +467,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_bench_characterize(bsub)
 
     add_bench_gui(bsub, positive())
-    return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(command_of(argv))
     args = parser.parse_args(argv)
-    logging.basicConfig(
-        level=logging.DEBUG if args.verbose else logging.WARNING,
-        format="%(levelname)s %(name)s: %(message)s",
-    )
+    configure_logging(args.verbose)
     if getattr(args, "list_effects", False):
         from smabench.physics.plant import EFFECT_DOCS
 
@@ -462,12 +506,33 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
 
 
+def configure_logging(verbose: bool) -> None:
+    """The console log: with ``--verbose`` every logger from DEBUG; otherwise one line per
+    real problem: smabench's own warnings and errors, its drivers' errors only (a device's
+    fault, a lost link: the session's end line says it once). Libraries' lines (pymodbus's "No
+    response received after 0 retries" for each late sensor answer, which the session already
+    flags) stay off the console."""
+    handler = logging.StreamHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    if not verbose:
+        handler.addFilter(_console_record)
+    logging.basicConfig(level=logging.DEBUG if verbose else logging.WARNING, handlers=[handler])
+
+
+def _console_record(record: logging.LogRecord) -> bool:
+    name = record.name
+    if name.startswith("smabench.drivers"):
+        return record.levelno >= logging.ERROR
+    return name == "smabench" or name.startswith("smabench.")
+
+
 def device_errors() -> tuple[type[BaseException], ...]:
     """The drivers' errors: the environment, not a bug (imported only when something failed)."""
+    from smabench.bench.headless import MockError
     from smabench.drivers.displacement import SensorError
     from smabench.drivers.link import LinkError
 
-    return (LinkError, SensorError)
+    return (LinkError, SensorError, MockError)
 
 
 QT_SYSTEM_PACKAGES = "libegl1 libgl1 libxkbcommon0 libfontconfig1 libdbus-1-3 libglib2.0-0"

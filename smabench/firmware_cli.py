@@ -24,6 +24,8 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from smabench.argtypes import port_syntax
+
 if TYPE_CHECKING:
     from smabench.drivers.protocol import DeviceInfo
 
@@ -262,7 +264,8 @@ def add_commands(sub) -> None:
         "flash",
         help="flash through the Arduino bootloader with avrdude, then identify the firmware",
     )
-    f.add_argument("--port", required=True, help="the Nano's serial port, e.g. /dev/ttyUSB0")
+    f.add_argument("--port", type=port_syntax, required=True, metavar="DEV",
+                   help="the Nano's serial port, e.g. /dev/ttyUSB0")
     f.add_argument(
         "--hex",
         help="Intel hex image (default: build firmware/build/avr/smabench-cd.hex with make)",

@@ -4,8 +4,10 @@ A plan file has a ``[plan]`` table (name, wire, loop rate, limits, where the ses
 ``[[step]]`` tables (protocol, load, cycles, currents, times, a rest after). :data:`PLAN_SCHEMA`
 and :data:`STEP_SCHEMA` declare every key (type, range, unit, help); anything else is refused
 with the key named. ``smabench plan run PLAN --dry-run`` prints each step's duration (an upper
-bound: cooling until its timeout), peak current and Joule energy in the wire, and checks every
-step against the limits exactly as ``smabench run`` would (nothing is opened).
+bound: cooling until its timeout), peak current, predicted peak wire temperature (the plant's
+heat balance, every cooling at its shortest) and Joule energy in the wire, and checks every
+step against the limits exactly as ``smabench run`` would (nothing is opened); a step whose
+predicted peak exceeds ``temperature_limit_c`` or that may outlast ``max_step_s`` is refused.
 
 Running: each step is one session (``smabench.bench.session_run.run_session`` on devices opened
 as ``smabench run`` does, the mock bench started per step with the step's load). Before a step
@@ -13,8 +15,12 @@ whose load differs from the one hanging, the operator is asked on the terminal t
 A state file ``plan-state.json`` beside the sessions (written atomically before and after every
 step) records each step's status and session; ``smabench plan resume STATE`` continues at the
 first unfinished step after a crash or a power loss (a step cut short is run again as a new
-session, the interrupted one kept and linked). Each session's ``session.json`` gets a ``plan``
-entry (plan name, step, index, the previous session), so the sessions of a campaign are linked.
+session, the interrupted one kept and linked). Only a lost device link is run again unattended
+(``retries``); an interlock or the driver's safety trip (over-temperature or energy, over-current,
+open wire, e-stop, lease) ends the plan with the step ``tripped``, and ``resume`` asks first
+(``--yes``; refused with one line when nobody answers). Each session's ``session.json`` gets a
+``plan`` entry (plan name, step, index, the previous session), so the sessions of a campaign are
+linked.
 """
 
 from __future__ import annotations
@@ -41,6 +47,9 @@ log = logging.getLogger(__name__)
 STATE_FILE = "plan-state.json"
 STATE_FORMAT = "smabench-plan-state/1"
 PLAN_PROTOCOLS = ("cycles", "incomplete", "inner")
+RETRIED_CAUSES = ("device",)
+"""Session end causes (``smabench.bench.tick.CAUSES``) a plan may run again unattended: link
+losses only. Every other abort (interlock, safety trip, e-stop) ends the plan."""
 
 
 @dataclass(frozen=True)
@@ -68,8 +77,8 @@ PLAN_SCHEMA: dict[str, Key] = {
     "allow_high_stress": Key(bool, "loads above the wire's long-life stress", default=False),
     "out": Key(str, "parent folder of the plan's folder", default="sessions"),
     "mock_speed": Key(float, "mock bench speed with --mock", "×", 0.1, 100.0, default=1.0),
-    "retries": Key(int, "times a step aborted by a device (not an interlock) is run again "
-                   "unattended, as a new session", "", 0, 10, default=1),
+    "retries": Key(int, "times a step that lost a device link (never a safety trip or an "
+                   "interlock) is run again unattended, as a new session", "", 0, 10, default=1),
 }
 STEP_SCHEMA: dict[str, Key] = {
     "name": Key(str, "step name (unique in the plan)", required=True),
@@ -168,6 +177,7 @@ def load_plan(path: str | Path) -> Plan:
             run_settings(plan, st).validate()
         except ValueError as exc:
             raise PlanError(f"{path} step {i} ({st['name']}): {exc}") from None
+        check_step_limits(plan, i, st)
     return plan
 
 
@@ -216,6 +226,70 @@ def step_budget(plan: Plan, step: dict[str, Any]) -> dict[str, float]:
     return {"duration_s": duration, "peak_current_a": i, "energy_j": i * i * float(r_ohm) * on_s}
 
 
+PEAK_AMBIENT_C = 22.0
+"""Room temperature of the dry run's peak prediction, °C (the plant's and the mock's)."""
+PEAK_MAX_CYCLES = 10_000
+"""Cycles followed for the peak: the ratchet of a short cooling converges long before."""
+
+
+def _phases(step: dict[str, Any]) -> list[tuple[float, float]]:
+    """One cycle of the step at its hottest, as (duration s, current A): the shortest cooling
+    the protocol allows (``min_cool_s``; settling may end a cooling then), every reheating."""
+    i = step["current_a"]
+    cool = min(step["min_cool_s"], step["cool_timeout_s"])
+    if step["protocol"] == "cycles":
+        return [(step["heat_s"], i), (cool, 0.0)]
+    if step["protocol"] == "incomplete":
+        return [(step["heat_s"], i), (step["partial_cool_s"], 0.0), (step["heat_s"], i),
+                (cool, 0.0)]  # fmt: skip
+    pulses = max(1, int(step["cool_timeout_s"] // (step["inner_heat_s"] + step["inner_cool_s"])))
+    return [(step["heat_s"], i),
+            *[(d, c) for _ in range(pulses)
+              for d, c in ((step["inner_cool_s"], 0.0), (step["inner_heat_s"], i))],
+            (cool, 0.0)]  # fmt: skip
+
+
+def predicted_peak_c(plan: Plan, step: dict[str, Any]) -> float:
+    """The step's peak wire temperature, °C, predicted with the plant's heat balance
+    (:func:`smabench.physics.thermal.step_exact`, exact per phase) at the martensite's larger
+    resistance, from :data:`PEAK_AMBIENT_C`, every cooling at its shortest: an upper bound of
+    what the host's estimate (the same heat balance) will show, so a step that passes here does
+    not trip the temperature interlock on a nominal wire."""
+    from smabench.physics.thermal import step_exact
+    from smabench.physics.wire import PRESETS
+
+    wire = PRESETS[plan.settings["wire"]]
+    r_ohm = float(wire.resistance_ohm(0.0))
+    temp = peak = PEAK_AMBIENT_C
+    phases = _phases(step)
+    for _ in range(min(step["cycles"], PEAK_MAX_CYCLES)):
+        before = temp
+        for duration_s, current_a in phases:
+            temp = float(step_exact(temp, current_a, duration_s, wire, PEAK_AMBIENT_C, r_ohm))
+            peak = max(peak, temp)  # a heating phase peaks at its end
+        if abs(temp - before) < 1e-3:  # the cycle repeats itself: so does its peak
+            break
+    return peak
+
+
+def check_step_limits(plan: Plan, index: int, step: dict[str, Any]) -> None:
+    """PlanError when the step's predicted peak exceeds the temperature limit or its
+    upper-bound duration exceeds ``max_step_s`` (it would trip or be aborted)."""
+    ps = plan.settings
+    where = f"{plan.path} step {index} ({step['name']})"
+    peak = predicted_peak_c(plan, step)
+    if peak > ps["temperature_limit_c"]:
+        raise PlanError(f"{where}: predicted peak wire temperature {peak:.0f} °C exceeds "
+                        f"temperature_limit_c {ps['temperature_limit_c']:g} °C: lower current_a "
+                        "or heat_s, or cool longer")  # fmt: skip
+    b = step_budget(plan, step)
+    active_s = b["duration_s"] - step["rest_s"]  # the session; the rest is outside it
+    if active_s > ps["max_step_s"]:
+        raise PlanError(f"{where}: takes up to {active_s:.0f} s, longer than max_step_s "
+                        f"{ps['max_step_s']:g} s (it would be aborted): fewer cycles, or raise "
+                        "max_step_s")  # fmt: skip
+
+
 def dry_run(plan: Plan) -> list[str]:
     """The dry-run report (lines); the plan is already checked against the limits."""
     lines = [f"plan {plan.settings['name']} ({plan.path}): {len(plan.steps)} step(s), "
@@ -224,9 +298,13 @@ def dry_run(plan: Plan) -> list[str]:
     peak = 0.0
     load = None
     lines.append(f"{'#':>3} {'step':16s} {'protocol':10s} {'load kg':>7s} {'stress MPa':>10s} "
-                 f"{'cycles':>6s} {'I A':>5s} {'≤ time':>9s} {'energy J':>9s}")  # fmt: skip
+                 f"{'cycles':>6s} {'I A':>5s} {'peak °C':>7s} {'≤ time':>9s} "
+                 f"{'energy J':>9s}")  # fmt: skip
+    hottest = 0.0
     for i, st in enumerate(plan.steps, start=1):
         b = step_budget(plan, st)
+        peak_c = predicted_peak_c(plan, st)
+        hottest = max(hottest, peak_c)
         stress = run_settings(plan, st).stress()
         total += b["duration_s"]
         energy += b["energy_j"]
@@ -236,13 +314,16 @@ def dry_run(plan: Plan) -> list[str]:
         lines.append(
             f"{i:>3} {st['name'][:16]:16s} {st['protocol']:10s} {st['load_kg']:7.3g} "
             f"{stress.stress_mpa:10.0f} {st['cycles']:6d} {st['current_a']:5.2f} "
-            f"{_hms(b['duration_s']):>9s} {b['energy_j']:9.1f}{change}"
+            f"{peak_c:7.0f} {_hms(b['duration_s']):>9s} {b['energy_j']:9.1f}{change}"
         )
     lines.append(f"total ≤ {_hms(total)} (cooling to its timeout; at --mock speed "
                  f"{plan.settings['mock_speed']:g}×: ≤ {_hms(total / plan.settings['mock_speed'])}"
                  f"), peak current {peak:.2f} A (limit {plan.settings['current_limit_a']:g} A), "
                  f"energy {energy:.0f} J")  # fmt: skip
-    lines.append("limits: every step checked as smabench run would (current, load, stress): ok")
+    lines.append(f"limits: every step checked as smabench run would (current, load, stress), "
+                 f"predicted peak ≤ {hottest:.0f} °C (limit "
+                 f"{plan.settings['temperature_limit_c']:g} °C), each within max_step_s "
+                 f"{plan.settings['max_step_s']:g} s: ok")  # fmt: skip
     return lines
 
 
@@ -409,12 +490,13 @@ def execute(
                 save_state(folder, state)
                 raise
             retried = entry.setdefault("retried", 0)
-            # only a device problem is run again; an interlock, a broken wire, an e-stop or the
-            # operator end the step (RunResult.cause, smabench.bench.tick.CAUSES)
-            if (result.status != "aborted" or result.cause != "device"
+            # only a link loss is run again; an interlock, the driver's safety trip (energy,
+            # over-temperature, over-current, open wire, e-stop, lease), a broken wire or the
+            # operator end the plan (RunResult.cause, smabench.bench.tick.CAUSES)
+            if (result.status != "aborted" or result.cause not in RETRIED_CAUSES
                     or retried >= plan.settings["retries"]):  # fmt: skip
                 break
-            # a device problem (link lost, sensor lost, driver fault): run the step again
+            # a link loss (driver telemetry or sensor lost): run the step again
             print(f"  {result.status}: {result.reason}; running the step again "
                   f"({retried + 1} of {plan.settings['retries']})", flush=True)  # fmt: skip
             _link_session(session, {"name": plan.settings["name"], "step": st["name"],
@@ -436,11 +518,19 @@ def execute(
         save_state(folder, state)
         print(f"  {result.status}: {result.reason} ({result.samples} samples) → {session}",
               flush=True)  # fmt: skip
-        if result.status != "completed":
+        if result.status != "completed" and result.cause in RETRIED_CAUSES:
             print(f"smabench plan: step {st['name']} {result.status}: {result.reason}; "
                   f"fix and `smabench plan resume {folder}`", file=sys.stderr)  # fmt: skip
             entry["status"] = "pending"
             save_state(folder, state)
+            return 1
+        if result.status != "completed":  # a safety trip: never run again unattended
+            entry.update(status="tripped", cause=result.cause)
+            save_state(folder, state)
+            print(f"smabench plan: step {st['name']} stopped by a safety trip ({result.reason}); "
+                  f"the plan ends here and the step is not run again: check the bench, then "
+                  f"`smabench plan resume {folder}` asks before continuing",
+                  file=sys.stderr)  # fmt: skip
             return 1
         if st["rest_s"] > 0:
             rest = st["rest_s"] / (plan.settings["mock_speed"] if dev.mock else 1.0)
@@ -456,6 +546,10 @@ def _devices(args: argparse.Namespace) -> Devices:
         raise PlanError("give either --mock or --port DEV --sensor SPEC")
     if args.port and not args.sensor:
         raise PlanError("--port needs --sensor (tcp:HOST:PORT or rtu:DEVICE[:BAUD])")
+    if args.mock:
+        from smabench.bench.headless import ready_timeout_s
+
+        ready_timeout_s()  # its environment setting checked before anything runs
     return Devices(args.mock, args.port, args.sensor, args.sensor_map)
 
 
@@ -489,17 +583,47 @@ def cmd_plan_resume(args: argparse.Namespace) -> int:
     if nxt is None:
         print(f"plan {state['name']}: all {len(state['steps'])} step(s) already done")
         return 0
+    tripped = next((s for s in state["steps"] if s["status"] == "tripped"), None)
+    if tripped is not None and not confirm_after_trip(tripped, args.yes):
+        print(f"plan {state['name']}: not resumed (step {tripped['name']} stays tripped)",
+              flush=True)  # fmt: skip
+        return 3
     print(f"plan {state['name']}: {done} of {len(state['steps'])} step(s) done; resuming at "
           f"{nxt}", flush=True)  # fmt: skip
     return execute(plan, state, _devices(args), ask=asker(args.prompt),
                    assume_loaded=args.assume_loaded)  # fmt: skip
 
 
+def confirm_after_trip(entry: dict[str, Any], yes: bool) -> bool:
+    """Whether to continue a plan whose step ``entry`` ended on a safety trip: ``yes``
+    (``--yes``), else the operator's answer on stdin; no operator (end of input) is a
+    PlanError, one line naming ``--yes``."""
+    why = entry.get("result", "a safety trip")
+    if yes:
+        print(f"step {entry['name']} ended on a safety trip ({why}); continuing (--yes)",
+              flush=True)  # fmt: skip
+        return True
+    print(f"step {entry['name']} ended on a safety trip ({why}). Has the cause been found and "
+          "fixed? Continue with this step? [y/N] ", end="", flush=True)
+    line = sys.stdin.readline() if sys.stdin is not None else ""
+    if not line:
+        print(flush=True)
+        raise PlanError(f"step {entry['name']} ended on a safety trip ({why}) and nobody is at "
+                        "the terminal to confirm: resume with --yes once the cause is fixed")
+    return line.strip().lower() in ("y", "yes")
+
+
 def _device_args(s: argparse.ArgumentParser) -> None:
     s.add_argument("--mock", action="store_true", help="run each step on the mock bench")
-    s.add_argument("--port", help="current driver serial port")
-    s.add_argument("--sensor", help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
-    s.add_argument("--sensor-map", default="generic-rs485-laser", help="sensor register map")
+    from smabench import argtypes
+
+    s.add_argument("--port", type=argtypes.serial_port, metavar="DEV",
+                   help="current driver serial port")
+    s.add_argument("--sensor", type=argtypes.sensor_spec, metavar="SPEC",
+                   help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
+    s.add_argument("--sensor-map", type=argtypes.sensor_map, default="generic-rs485-laser",
+                   metavar="MAP",
+                   help="sensor register map: a shipped name or a map file")
     s.add_argument("--assume-loaded", action="store_true",
                    help="do not stop for load changes (the operator is not needed)")  # fmt: skip
     s.add_argument("--prompt", choices=("auto", "gui", "terminal"), default="auto",
@@ -518,5 +642,7 @@ def add_commands(sub) -> None:
     r.set_defaults(func=cmd_plan_run)
     r = psub.add_parser("resume", help="continue a plan at its first unfinished step")
     r.add_argument("state", help="the plan's folder or its plan-state.json")
+    r.add_argument("--yes", action="store_true",
+                   help="continue after a step's safety trip without asking (the cause fixed)")
     _device_args(r)
     r.set_defaults(func=cmd_plan_resume)

@@ -902,3 +902,44 @@ def check_run(values: Mapping[str, Any], device_limit_a: float | None = None) ->
     limit_a, limit_name = effective_current_limit_a(values, device_limit_a)
     check_protocol(proto, limit_a, closed_loop=closed, limit_name=limit_name)
     return check_stress(values)
+
+
+# --------------------------------------------------------------------------- device options
+_DEVICE_OPTIONS: list[Setting] = [
+    Setting("sensor_timeout_s", "sensor request timeout", "Per-request Modbus timeout in the "
+            "loop; a later reading is flagged.", "devices", unit="s", default=0.05, min=0.001,
+            max=5.0, decimals=3),  # fmt: skip
+    Setting("mock.seed", "mock seed", "Seed of the mock sensor's noise.", "devices", kind="int",
+            default=0, min=0, max=1e9, decimals=0),  # fmt: skip
+    Setting("mock.adapter_latency_ms", "adapter latency", "The mock's sensor holds every answer "
+            "this long, as an FTDI USB/RS-485 adapter's latency timer does.", "devices",
+            unit="ms", default=0.0, min=0.0, max=1000.0),  # fmt: skip
+    Setting("mock.tcp_port", "Modbus TCP port", "The mock sensor's TCP port (0: any free one).",
+            "devices", kind="int", default=0, min=0, max=65535, decimals=0),  # fmt: skip
+    Setting("mock.ready_timeout_s", "mock readiness timeout", "Longest wait for a started mock "
+            "bench to print its ports (env SMABENCH_MOCK_READY_TIMEOUT_S).", "devices",
+            unit="s", default=60.0, min=0.0, min_open=True, max=3600.0),  # fmt: skip
+    Setting("sim.noise_mm", "sensor noise", "Standard deviation of the simulated sensor noise.",
+            "devices", unit="mm", default=0.002, min=0.0, max=10.0, decimals=4),  # fmt: skip
+    Setting("sim.seed", "noise seed", "Seed of the simulated noise.", "devices", kind="int",
+            default=0, min=0, max=1e9, decimals=0),  # fmt: skip
+]
+DEVICE_OPTIONS: dict[str, Setting] = {s.key: s for s in _DEVICE_OPTIONS}
+"""Options of the devices and simulations around a session (not run settings: neither the GUI's
+fields nor the runtime's JSON carry them), declared here so that their ranges live in one place
+too; command lines use them through :func:`arg_type`."""
+
+
+def arg_type(key: str) -> Any:
+    """An argparse ``type=`` for the setting or device option ``key``: the value in its type,
+    or ``ArgumentTypeError`` with the one-line reason (NaN and infinities are never in range)."""
+    s = DEVICE_OPTIONS.get(key) or get(key)
+
+    def parse(text: str) -> Any:
+        try:
+            return s.check(text)
+        except SettingError as exc:
+            raise argparse.ArgumentTypeError(exc.reason) from None
+
+    parse.__name__ = s.label
+    return parse

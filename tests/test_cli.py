@@ -176,3 +176,48 @@ def test_a_port_that_cannot_be_opened_is_one_line(run_cli, tmp_path):
     proc = run_cli("run", "--port", tmp_path / "no-such-port", "--sensor", "tcp:127.0.0.1:1",
                    "--load-kg", "1", "--out", tmp_path)  # fmt: skip
     _assert_clean_failure(proc, "device error", "no-such-port")
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["run", "--mock", "--mock-seed", "-1"], "argument --mock-seed: mock seed must be in"),
+        (["run", "--port", "/dev/null", "--sensor", "tpc:h:1"], "unknown transport 'tpc'"),
+        (["run", "--port", "nope://x", "--sensor", "tcp:h:1"], "unknown port URL scheme"),
+        (["run", "--mock", "--sensor-map", "no-such-map"], "no such register map"),
+        (["simulate", "--out", "x", "--heat-s", "inf"], "must be a finite number > 0"),
+        (["plan", "run", "p.toml", "--port", "/dev/no-such-tty"], "no such port"),
+        (["sensor", "read", "--sensor", "rtu:/dev/no-such-tty"], "no such port"),
+    ],
+)
+def test_option_errors_are_one_line_naming_the_option(capsys, argv, needle):
+    from smabench.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main(argv)
+    assert done.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and needle in err, err
+    assert err.startswith("smabench ") and "--help" in err
+
+
+def test_a_command_builds_only_its_own_parser():
+    from smabench.cli import build_parser, command_of
+
+    assert command_of(["-v", "run", "--mock"]) == "run" and command_of(["--version"]) is None
+    sub = next(a for a in build_parser("mock")._actions if a.dest == "command")
+    assert set(sub.choices) == {"import", "simulate", "demo", "export", "mock", "run"}
+
+
+def test_console_log_keeps_library_lines_off(capsys):
+    import logging
+
+    from smabench.cli import _console_record
+
+    def rec(name, level):
+        return logging.LogRecord(name, level, __file__, 1, "m", None, None)
+
+    assert not _console_record(rec("pymodbus.logging", logging.ERROR))
+    assert not _console_record(rec("smabench.drivers.link", logging.WARNING))
+    assert _console_record(rec("smabench.drivers.link", logging.ERROR))
+    assert _console_record(rec("smabench.bench.runtime", logging.WARNING))

@@ -132,7 +132,8 @@ class FakeBench:
         if reasons:
             reason = reasons.pop(0)
             w.close("aborted", reason)
-            cause = "interlock" if reason.startswith("interlock") else "device"
+            cause = ("interlock" if reason.startswith("interlock") else
+                     "safety" if reason.startswith("current driver fault") else "device")
             return folder, RunResult("aborted", reason, 1, cause=cause)
         w.close()
         return folder, RunResult("completed", "protocol completed", 1, cause="completed")
@@ -268,4 +269,59 @@ def test_device_aborts_are_retried_unattended_interlocks_are_not(tmp_path, monke
     a, b = state["steps"][:2]
     assert a["status"] == "done" and a["session"].endswith("01-a-r1") and a["retried"] == 1
     assert json.loads((plan.folder / "01-a" / "session.json").read_text())["plan"]["superseded"]
-    assert b["status"] == "pending" and "interlock" in b["result"]
+    assert b["status"] == "tripped" and "interlock" in b["result"]
+
+
+def test_a_safety_trip_ends_the_plan_and_resume_asks(tmp_path, monkeypatch, capsys):
+    trip = "current driver fault: over-temperature (energy budget or thermocouple above the max)"
+    fake = FakeBench(abort={"a": [trip, trip]})
+    monkeypatch.setattr(planmod, "_run_step_session", fake)
+    plan = load_plan(_plan(tmp_path))
+    code = execute(plan, new_state(plan), planmod.Devices(mock=True), ask=lambda *a: True,
+                   sleep=lambda s: None)  # fmt: skip
+    assert code == 1 and fake.ran == ["01-a"]  # retries = 1 in the plan, yet not run again
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "over-temperature" in err[0] and "plan resume" in err[0]
+    state, _ = load_state(plan.folder)
+    assert state["steps"][0]["status"] == "tripped" and state["steps"][0]["cause"] == "safety"
+
+    entry = state["steps"][0]
+    import io
+
+    monkeypatch.setattr(sys, "stdin", io.StringIO(""))  # nobody at the terminal: end of input
+    with pytest.raises(PlanError, match="--yes"):
+        planmod.confirm_after_trip(entry, yes=False)
+    monkeypatch.setattr(sys, "stdin", io.StringIO("n\n"))
+    assert not planmod.confirm_after_trip(entry, yes=False)
+    monkeypatch.setattr(sys, "stdin", io.StringIO("yes\n"))
+    assert planmod.confirm_after_trip(entry, yes=False)
+    assert planmod.confirm_after_trip(entry, yes=True)
+
+
+def test_predicted_peak_against_the_heat_balance(tmp_path):
+    from smabench.physics.thermal import steady_state_temperature
+    from smabench.physics.wire import PRESETS
+
+    wire = PRESETS["paper"]
+    plan = load_plan(_plan(tmp_path))
+    long_heat = {**plan.steps[0], "heat_s": 600.0, "cycles": 1, "current_a": 1.0}
+    hot = steady_state_temperature(1.0, wire, planmod.PEAK_AMBIENT_C,
+                                   resistance_ohm=wire.resistance_ohm(0.0))  # fmt: skip
+    assert planmod.predicted_peak_c(plan, long_heat) == pytest.approx(hot, abs=0.01)
+    one = {**plan.steps[0], "cycles": 1}
+    many = {**plan.steps[0], "cycles": 50, "min_cool_s": 0.5}  # short cooling ratchets up
+    assert planmod.predicted_peak_c(plan, many) > planmod.predicted_peak_c(plan, one) + 5
+
+
+@pytest.mark.parametrize(
+    ("edit", "match"),
+    [
+        (("[plan]", "[plan]\ntemperature_limit_c = 60"), r"step 2 \(b\): predicted peak wire "
+         r"temperature \d+ °C exceeds temperature_limit_c 60 °C"),
+        (("[plan]", "[plan]\nmax_step_s = 15"), r"step 1 \(a\): takes up to 20 s, longer than "
+         "max_step_s 15 s"),
+    ],
+)
+def test_plan_refuses_a_step_over_the_limits(tmp_path, edit, match):
+    with pytest.raises(PlanError, match=match):
+        load_plan(_plan(tmp_path, PLAN.replace(*edit, 1)))

@@ -438,3 +438,28 @@ def test_fields_for_the_gui():
     assert S.error_for("current_limit_a", 1.0) is None
     with pytest.raises(KeyError, match="no group"):
         S.fields("bogus")
+
+
+@pytest.mark.parametrize(
+    ("key", "text", "needle"),
+    [
+        ("mock.seed", "-1", "mock seed must be in 0 … 1e+09, got -1"),
+        ("mock.seed", "1.5", "must be a whole number"),
+        ("mock.adapter_latency_ms", "nan", "adapter latency must be in 0 … 1000 ms"),
+        ("sensor_timeout_s", "inf", "sensor request timeout must be in 0.001 … 5 s"),
+        ("mock.tcp_port", "70000", "0 … 65535"),
+        ("mock.ready_timeout_s", "0", "(0, 3600] s"),
+        ("time_scale", "inf", "time scale must be in 0.1 … 100"),
+        ("load_kg", "nan", "load must be in (0, 10] kg"),
+    ],
+)
+def test_device_options_refuse_out_of_range_and_non_finite(key, text, needle):
+    with pytest.raises(argparse.ArgumentTypeError, match=re.escape(needle)):
+        S.arg_type(key)(text)
+
+
+def test_device_options_parse_in_their_type():
+    assert S.arg_type("mock.seed")("7") == 7 and isinstance(S.arg_type("mock.seed")("7"), int)
+    assert S.arg_type("sensor_timeout_s")("0.02") == pytest.approx(0.02)
+    assert S.arg_type("mock.adapter_latency_ms")("16") == 16.0
+    assert set(S.DEVICE_OPTIONS).isdisjoint(S.SETTINGS)  # not run settings: no GUI field, no JSON

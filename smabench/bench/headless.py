@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import math
 import os
+import queue
 import signal
 import subprocess
 import sys
@@ -20,10 +21,13 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from smabench import argtypes
 from smabench import settings as settings_schema
-from smabench.bench.session_run import RunSettings, check_session_space, run_session
-from smabench.protocols import Protocol
+
+if TYPE_CHECKING:
+    from smabench.bench.session_run import RunSettings
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +65,8 @@ def cmd_mock(args: argparse.Namespace) -> int:
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+        if args.control_stdin:  # a child of `run`/`plan`, which say the session's problems once
+            logging.getLogger("smabench").setLevel(logging.ERROR)
     done = threading.Event()  # set by the stdin control thread (EOF, quit)
     signalled: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -157,14 +163,37 @@ class MockPortsSeen:
     sensor_rtu: str | None
 
 
-class MockProcess:
-    """``smabench mock`` in its own process; :attr:`ports` once it is ready (``timeout_s``:
-    its start-up, an interpreter and its imports, takes 1-2 s on a quiet machine and over
-    20 s beside other work on two cores; nothing waits on the bench meanwhile)."""
+class MockError(RuntimeError):
+    """The mock bench did not start (exited, or not ready within its readiness timeout)."""
 
-    def __init__(self, mock_args: list[str], timeout_s: float = 60.0) -> None:
+
+READY_TIMEOUT_ENV = "SMABENCH_MOCK_READY_TIMEOUT_S"
+
+
+def ready_timeout_s() -> float:
+    """The mock's readiness timeout, s: ``$SMABENCH_MOCK_READY_TIMEOUT_S`` or the declared
+    default (``mock.ready_timeout_s`` in :mod:`smabench.settings`); ValueError naming the
+    variable when it is not a number in range."""
+    setting = settings_schema.DEVICE_OPTIONS["mock.ready_timeout_s"]
+    text = os.environ.get(READY_TIMEOUT_ENV)
+    if text is None:
+        return float(setting.default)
+    try:
+        return float(setting.check(text))
+    except settings_schema.SettingError as exc:
+        raise ValueError(f"{exc.reason} (environment variable {READY_TIMEOUT_ENV})") from None
+
+
+class MockProcess:
+    """``smabench mock`` in its own process; :attr:`ports` once it is ready. ``timeout_s``
+    (default :func:`ready_timeout_s`): its start-up, an interpreter and its imports, takes
+    1-2 s on a quiet machine and over 20 s beside other work on two cores; when it is not
+    ready by then the process is ended and :class:`MockError` raised (one line)."""
+
+    def __init__(self, mock_args: list[str], timeout_s: float | None = None) -> None:
         from smabench.drivers.mock.bench import die_with_parent
 
+        timeout_s = ready_timeout_s() if timeout_s is None else timeout_s
         # it also ends on stdin EOF, i.e. when this process dies, whatever the signal
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "smabench.cli", "mock", "--control-stdin", *mock_args],
@@ -175,29 +204,38 @@ class MockProcess:
             preexec_fn=die_with_parent,
             start_new_session=True,  # the bench's stand-in: a terminal's Ctrl-C or hang-up
         )  # reaches the session (which makes it safe), not the devices
+        # a reader thread: the wait below is bounded whether or not the mock prints anything
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        self._reader = threading.Thread(target=self._read, daemon=True, name="mock-stdout")
+        self._reader.start()
         found: dict[str, str] = {}
         deadline = time.monotonic() + timeout_s
         while True:
-            line = self.proc.stdout.readline()
-            if not line:
-                self.close()
-                raise RuntimeError(f"mock bench exited with code {self.proc.returncode}")
+            try:
+                line = self._lines.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                self.close(kill=True)
+                raise MockError(f"mock bench did not become ready within {timeout_s:g} s "
+                                f"(a loaded machine? {READY_TIMEOUT_ENV} sets the wait)") from None
+            if line is None:
+                code = self.proc.wait()
+                raise MockError(f"mock bench exited with code {code} before it was ready")
             line = line.strip()
             if line == READY_LINE:
                 break
             key, sep, value = line.partition(": ")
             if sep:
                 found[key] = value
-            if time.monotonic() > deadline:
-                self.close()
-                raise RuntimeError("mock bench did not become ready")
         self.ports = MockPortsSeen(found["driver"], found["sensor-tcp"], found.get("sensor-rtu"))
-        self._replies = threading.Thread(target=self._drain, daemon=True)
-        self._replies.start()
 
-    def _drain(self) -> None:
-        for _ in self.proc.stdout:
-            pass
+    def _read(self) -> None:
+        """Hand the mock's lines to the readiness wait, then drain them (it never blocks)."""
+        ready = False
+        for line in self.proc.stdout:
+            if not ready:
+                self._lines.put(line)
+                ready = line.strip() == READY_LINE
+        self._lines.put(None)
 
     def send(self, command: str) -> None:
         """One fault-injection command (see ``_control_loop``)."""
@@ -209,8 +247,10 @@ class MockProcess:
         self.proc.kill()
         self.proc.wait()
 
-    def close(self) -> None:
+    def close(self, kill: bool = False) -> None:
         if self.proc.poll() is None:
+            if kill:  # not ready: it may be stuck anywhere in its start-up
+                self.proc.kill()
             with contextlib.suppress(OSError, ValueError):
                 self.proc.stdin.close()
             try:
@@ -228,7 +268,9 @@ class MockProcess:
 
 def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
     """Options of the mock bench (``--load-kg`` etc.; with a prefix for ``smabench run``)."""
-    s.add_argument(f"--{prefix}speed", type=float, default=1.0, help="simulation speed (×)")
+    s.add_argument(f"--{prefix}speed", type=settings_schema.arg_type("time_scale"), default=1.0,
+                   metavar="X",
+                   help="simulation speed, × real time (0.1 … 100; 1)")
     s.add_argument(
         f"--{prefix}effect",
         action="append",
@@ -242,14 +284,16 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
         default="python",
         help="current driver: the Python firmware model, or the real firmware in simavr",
     )
-    s.add_argument(f"--{prefix}seed", type=int, default=0, help="sensor noise seed")
+    s.add_argument(f"--{prefix}seed", type=settings_schema.arg_type("mock.seed"), default=0,
+                   metavar="N",
+                   help="sensor noise seed (0 … 1e9; 0)")
     s.add_argument(
         f"--{prefix}adapter-latency-ms",
-        type=float,
+        type=settings_schema.arg_type("mock.adapter_latency_ms"),
         default=0.0,
         metavar="MS",
         help="hold every sensor answer this long, as an FTDI USB/RS-485 adapter's latency timer "
-        "does (16 ms by default on a real one; drivers/sensors/README.md)",
+        "does (0 … 1000 ms; 16 ms by default on a real one)",
     )
     s.add_argument(
         f"--{prefix}trace",
@@ -267,6 +311,7 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
 def settings_from_args(args: argparse.Namespace) -> RunSettings:
     """RunSettings from the command line (options derived from :mod:`smabench.settings`);
     ValueError naming the option, its value and range when refused (nothing opened yet)."""
+    from smabench.bench.session_run import RunSettings  # the control stack: imported on use
     try:
         given = settings_schema.values_from_args(args)
         if given.get("controller.switches") and given.get("controller.mode") is None:
@@ -361,6 +406,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.port and not args.sensor:
         raise ValueError("--port needs --sensor (tcp:HOST:PORT or rtu:DEVICE[:BAUD])")
     settings = settings_from_args(args)  # everything checked before a device is opened
+    from smabench.bench.session_run import check_session_space, run_session
+    from smabench.protocols import Protocol
+    ready_s = ready_timeout_s() if args.mock else None  # the environment's setting too
+    if args.port:  # a missing device is said now, not after the driver's open retries
+        try:
+            argtypes.serial_port(args.port)
+        except argparse.ArgumentTypeError as exc:
+            raise ValueError(f"argument --port: {exc}") from None
     from smabench.bench.priority import raise_priority, realtime_loop_thread
 
     raise_priority()  # the control loop (and the mock it starts) before other work
@@ -389,7 +442,7 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mock_args += ["--thermocouple"]
             mock_args += ["--sensor-map", args.sensor_map]  # it serves what the client reads
             mock_args += ["--adapter-latency-ms", f"{args.mock_adapter_latency_ms:g}"]
-            mock = MockProcess(mock_args)
+            mock = MockProcess(mock_args, ready_s)
             port = mock.ports.driver
             spec = mock.ports.sensor_rtu if args.mock_sensor == "rtu" else mock.ports.sensor_tcp
             if spec is None:
@@ -457,16 +510,21 @@ def _interrupt(*_: object) -> None:
 def add_commands(sub) -> None:
     """Register ``mock`` and ``run`` on the CLI's subparsers."""
     s = sub.add_parser("mock", help="serve the mock bench over real transports, print its ports")
-    s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
-    s.add_argument("--tcp-port", type=int, default=0, help="Modbus TCP port (0 = any free)")
-    s.add_argument(
-        "--control-stdin", action="store_true", help="read fault-injection commands on stdin"
+    s.add_argument("--load-kg", type=settings_schema.arg_type("load_kg"), default=2.0,
+                   metavar="KG", help="hanging load, kg (default 2)")
+    s.add_argument("--tcp-port", type=settings_schema.arg_type("mock.tcp_port"), default=0,
+                   metavar="PORT",
+                   help="Modbus TCP port (0 = any free)")
+    s.add_argument(  # internal: how `run --mock` and the tests drive it
+        "--control-stdin", action="store_true", help=argparse.SUPPRESS
     )
     add_mock_arguments(s)
     s.add_argument(
         "--sensor-map",
+        type=argtypes.sensor_map,
         default="generic-rs485-laser",
-        help="register map the sensor serves (drivers/sensors; `smabench run` passes its own)",
+        metavar="MAP",
+        help="register map the sensor serves (a shipped name or a map file)",
     )
     s.add_argument(
         "--bootloader",
@@ -481,14 +539,20 @@ def add_commands(sub) -> None:
     s = sub.add_parser("run", help="run a recorded session (headless) on the bench or the mock")
     where = s.add_argument_group("devices")
     where.add_argument("--mock", action="store_true", help="start and use the mock bench")
-    where.add_argument("--port", help="current driver serial port, e.g. /dev/ttyUSB0")
-    where.add_argument("--sensor", help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
-    where.add_argument("--sensor-map", default="generic-rs485-laser", help="register map")
+    where.add_argument("--port", type=argtypes.port_syntax, metavar="DEV",
+                       help="current driver serial port, e.g. /dev/ttyUSB0")
+    where.add_argument("--sensor", type=argtypes.sensor_spec, metavar="SPEC",
+                       help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
+    where.add_argument("--sensor-map", type=argtypes.sensor_map, default="generic-rs485-laser",
+                       metavar="MAP",
+                       help="register map: a shipped name or a map file")
     where.add_argument(
         "--sensor-timeout-s",
-        type=float,
+        type=settings_schema.arg_type("sensor_timeout_s"),
+        metavar="S",
         default=0.05,
-        help="per-request Modbus timeout in the loop, s (0.05); a late reading is flagged",
+        help="per-request Modbus timeout in the loop, s (0.001 … 5; 0.05); a late reading is "
+        "flagged",
     )
     where.add_argument(
         "--mock-sensor", choices=["tcp", "rtu"], default="tcp", help="mock sensor transport"

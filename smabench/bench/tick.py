@@ -69,11 +69,17 @@ OUTPUT_OFF_UNEXPLAINED = "current driver output turned off by the device"
 """The end reason when the driver's output went off with no fault it names (the runtime renames
 it a lost driver when the link then goes silent)."""
 
-CAUSES = ("completed", "operator", "interlock", "device", "host")
+CAUSES = ("completed", "operator", "interlock", "safety", "device", "host")
 """Why a session ended: the source finished; e-stop or stop; an interlock (current,
 temperature, position, broken wire, maximum duration: running again would trip it again or is
-unsafe); a device problem (a lost sensor or driver link, a driver fault or its output off);
-the host (a full disk, a signal to the recording process: running again does not help)."""
+unsafe); the driver's own safety trip (:data:`SAFETY_TRIPS`: over-temperature or energy
+budget, over-current, open wire, e-stop, setpoint lease: as unsafe to repeat unattended as an
+interlock); a device problem (a lost sensor or driver link, the output off for another reason:
+only this one may be retried); the host (a full disk, a signal to the recording process:
+running again does not help)."""
+
+SAFETY_TRIPS = Flag.OVERTEMP | Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.ESTOP | Flag.LEASE_EXPIRED
+"""Driver flags that turn its output off as a safety function (cause ``safety``)."""
 
 POSITION_INVALID_BITS = FLAGS_POSITION_INVALID | FLAG_SENSOR_STATUS
 """Sample flags that make a position invalid: link problems and the sensor's own error bits."""
@@ -221,10 +227,11 @@ class ControlTick:
         output_on = telemetry is not None and bool(telemetry.flags & Flag.ENABLED)
         if not output_on:
             if not starting:  # the device turned its output off: a fault, an event, e-stop
+                tripped = telemetry is not None and bool(telemetry.flags & SAFETY_TRIPS)
                 return self._end(
                     "aborted",
                     f"current driver fault: {fault}" if fault else OUTPUT_OFF_UNEXPLAINED,
-                    "device",
+                    "safety" if tripped else "device",
                 )
             # a frame from before the session's ENABLE: its events (a host timeout while the
             # session was being set up) are history, not this session's fault

@@ -368,3 +368,23 @@ def test_plant_with_a_known_stress_shift(tmp_path):
         assert got == pytest.approx(expected, rel=tol), (key, got, expected)
         for s, p in zip(doc["sessions"], plant, strict=True):
             assert all(abs(c[f"{key}_C"] - p[pk]) < 4.0 for c in s["cycles"])
+
+
+def test_phase_diagram_slopes_are_judged_as_clausius_clapeyron_or_not():
+    """Issue 24: a 1 kg / 2 kg mock step gave As −64.7 MPa/K with no comment."""
+    from smabench.characterize.run import why_not_clausius_clapeyron
+
+    assert why_not_clausius_clapeyron(8.0, 10.0, 0.5, 80.0) is None
+    assert "wrong sign" in why_not_clausius_clapeyron(-64.7, -1.2, 0.1, 80.0)
+    assert "outside 3–20" in why_not_clausius_clapeyron(40.0, 2.0, 0.1, 80.0)
+    assert "no stress shift" in why_not_clausius_clapeyron(8.0, 10.0, 6.0, 80.0)
+
+    def session(load: float, temps: dict[str, float]) -> dict:
+        cycle = {f"{k}_C": temps.get(k) for k in ("As", "Af", "Ms", "Mf")}
+        return {"load_MPa": load, "cycles": [{**cycle, "temperature_uncertainty_K": 0.3}]}
+
+    pd = phase_diagram([session(100.0, {"As": 80.0, "Af": 90.0, "Ms": 70.0, "Mf": 60.0}),
+                        session(180.0, {"As": 90.0, "Af": 89.0, "Ms": 80.0})])  # fmt: skip
+    assert pd["As"]["clausius_clapeyron"] is True and pd["As"]["why_not"] is None
+    assert pd["Af"]["clausius_clapeyron"] is False and "wrong sign" in pd["Af"]["why_not"]
+    assert pd["Mf"]["clausius_clapeyron"] is False and "fewer than two loads" in pd["Mf"]["why_not"]

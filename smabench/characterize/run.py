@@ -196,7 +196,9 @@ def phase_diagram(sessions: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
                     unc.append(u if u is not None and u > 0 else math.nan)
         sig_a, temp_a, unc_a = np.array(sig), np.array(temp), np.array(unc)
         if len(set(np.round(sig_a, 6))) < 2:
-            out[key] = {"slope_MPa_per_K": None, "uncertainty": None, "n_points": len(sig)}
+            out[key] = {"slope_MPa_per_K": None, "uncertainty": None, "n_points": len(sig),
+                        "clausius_clapeyron": False,
+                        "why_not": "determined at fewer than two loads"}  # fmt: skip
             continue
         A = np.column_stack([np.ones_like(sig_a), sig_a])
         coef, *_ = np.linalg.lstsq(A, temp_a, rcond=None)

@@ -33,6 +33,7 @@ def _fit_and_characterize(installed: Installed, sessions: list[str], cwd: Path) 
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # analyze: ~25 s of CPU, minutes of wall time on a loaded machine
 def test_filtered_flexinol_loops(installed: Installed, cwd: Path) -> None:
     for mpa in (100, 172):
         installed.ok("import", LOOPS / f"filtered_data_{mpa}MPa.txt", "--columns",
@@ -55,6 +56,7 @@ def raw_sessions(installed: Installed, tmp_path_factory: pytest.TempPathFactory)
 
 @needs_shared
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 def test_raw_tensile_exports_import_fit_characterize_analyze(
     installed: Installed, raw_sessions: Path
 ) -> None:
@@ -68,6 +70,7 @@ def test_raw_tensile_exports_import_fit_characterize_analyze(
 
 @needs_shared
 @pytest.mark.slow
+@pytest.mark.timeout(1800)
 @pytest.mark.xfail(strict=True, reason="the loading ramp of a raw export is recognised by the "
                    "analysis (another helper's part of issue 24); on branch fitchar analyze still "
                    "names no stress shift on the raw exports")  # fmt: skip
@@ -95,6 +98,7 @@ def test_european_file(installed: Installed, cwd: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)
 def test_thermocouple_loop(installed: Installed, recordings: Recordings, cwd: Path) -> None:
     tc = cycles_session(recordings, 2.0, thermocouple=True)
     _fit_and_characterize(installed, [str(tc)], cwd)

@@ -180,10 +180,13 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 # --------------------------------------------------------------------------- demo
 def cmd_demo(args: argparse.Namespace) -> int:
     """Headless demo: a session on the mock bench over real transports, fits, a loop PNG."""
+    from smabench.fit_cli import usable_rows
     from smabench.physics.identify import fit_loop
     from smabench.plotting import save_loop_png
     from smabench.sessions import load_session
 
+    if args.seed < 0:
+        raise CliError(f"--seed must be >= 0, got {args.seed}")
     sid = time.strftime("demo-%Y%m%d-%H%M%S")
     print(
         f"mock bench ({args.speed:g}× real time): {args.cycles} heating cycles at "
@@ -193,13 +196,13 @@ def cmd_demo(args: argparse.Namespace) -> int:
     code = main(
         ["run", "--mock", "--mock-speed", str(args.speed), "--load-kg", str(args.load_kg),
          "--cycles", str(args.cycles), "--current-a", str(args.current_a), "--heat-s", "3",
-         "--out", str(args.out), "--session-id", sid]
+         "--out", str(args.out), "--session-id", sid, "--mock-seed", str(args.seed)]
     )  # fmt: skip
     if code != 0:
         return code
     folder = Path(args.out) / sid
     session = load_session(folder)
-    ok = np.isfinite(session.data["position_mm"])
+    ok, _ = usable_rows(session, session.data["temperature_est_C"])
     temp = session.data["temperature_est_C"][ok]
     pos = session.data["position_mm"][ok]
     fits = [fit_loop(temp, pos, name) for name in ("1", "sigmoid")]
@@ -381,6 +384,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                    help="mock bench speed, × (0.1 … 100; 5)")
     s.add_argument("--current-a", type=arg_type("protocol.current_a"), default=1.4,
                    help="heating current, A (1.4)")
+    s.add_argument("--seed", type=arg_type("mock.seed"), default=0,
+                   help="mock bench noise seed (0)")
     s.add_argument("--out", default="sessions", help="parent folder (./sessions)")
     s.set_defaults(func=cmd_demo)
 

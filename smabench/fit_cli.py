@@ -40,6 +40,20 @@ def _finite(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     return np.isfinite(t) & np.isfinite(y)
 
 
+def usable_rows(session, temperature_c: np.ndarray) -> tuple[np.ndarray, int]:
+    """(rows a loop is fitted on, rows masked): the bench records rows whose position its sensor
+    flagged invalid (``flags`` & :data:`~smabench.sessions.FLAGS_POSITION_INVALID`, the value may
+    still be there) or left empty; those rows are masked, not refused."""
+    from smabench.sessions import FLAGS_POSITION_INVALID
+
+    position_mm = session.data["position_mm"]
+    ok = _finite(temperature_c, position_mm)
+    if session.has("flags"):
+        flags = np.nan_to_num(np.asarray(session.data["flags"], dtype=float)).astype(np.int64)
+        ok &= (flags & FLAGS_POSITION_INVALID) == 0
+    return ok, int((~ok).sum())
+
+
 def cmd_fit(args: argparse.Namespace) -> int:
     from smabench.physics.identify import MODELS, fit_loop, model_document, nrmse_on
     from smabench.sessions import atomic_write_json, load_session
@@ -53,7 +67,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     session = load_session(args.session)
     temperature_c, tcol = loop_temperature(session)
     position_mm = session.data["position_mm"]
-    ok = _finite(temperature_c, position_mm)
+    ok, n_masked = usable_rows(session, temperature_c)
     t_all, y_all = temperature_c[ok], position_mm[ok]
     n_fit = t_all.size
     if args.holdout is not None:
@@ -64,12 +78,15 @@ def cmd_fit(args: argparse.Namespace) -> int:
         "session": str(session.path),
         "temperature_column": tcol,
         "n_points": int(fit.n_points),
+        "n_masked": n_masked,
         "rmse_mm": float(fit.rmse_mm),
         "nrmse_percent": float(fit.nrmse_percent),
         "ard_percent": float(fit.ard_percent),
         "parameters": {k: float(v) for k, v in fit.parameters.items()},
     }
     print(f"model {fit.model} on {session.path} ({fit.n_points} points, vs {tcol})")
+    if n_masked:
+        print(f"  {n_masked} row(s) masked: position flagged invalid by the sensor or empty")
     for k, v in report["parameters"].items():
         print(f"  {k:>24s} = {v:.6g}")
     print(
@@ -89,7 +106,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         other = load_session(args.test)
         t2, _ = loop_temperature(other)
         y2 = other.data["position_mm"]
-        ok2 = _finite(t2, y2)
+        ok2, _ = usable_rows(other, t2)
         report["test"] = {
             "session": str(other.path),
             "n_points": int(ok2.sum()),

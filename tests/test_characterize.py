@@ -368,3 +368,54 @@ def test_plant_with_a_known_stress_shift(tmp_path):
         assert got == pytest.approx(expected, rel=tol), (key, got, expected)
         for s, p in zip(doc["sessions"], plant, strict=True):
             assert all(abs(c[f"{key}_C"] - p[pk]) < 4.0 for c in s["cycles"])
+
+
+def test_phase_diagram_slopes_are_judged_as_clausius_clapeyron_or_not():
+    """Issue 24: a 1 kg / 2 kg mock step gave As −64.7 MPa/K with no comment."""
+    from smabench.characterize.run import why_not_clausius_clapeyron
+
+    assert why_not_clausius_clapeyron(8.0, 10.0, 0.5, 80.0) is None
+    assert "wrong sign" in why_not_clausius_clapeyron(-64.7, -1.2, 0.1, 80.0)
+    assert "outside 3–20" in why_not_clausius_clapeyron(40.0, 2.0, 0.1, 80.0)
+    assert "no stress shift" in why_not_clausius_clapeyron(8.0, 10.0, 6.0, 80.0)
+
+    def session(load: float, temps: dict[str, float]) -> dict:
+        cycle = {f"{k}_C": temps.get(k) for k in ("As", "Af", "Ms", "Mf")}
+        return {"load_MPa": load, "cycles": [{**cycle, "temperature_uncertainty_K": 0.3}]}
+
+    pd = phase_diagram([session(100.0, {"As": 80.0, "Af": 90.0, "Ms": 70.0, "Mf": 60.0}),
+                        session(180.0, {"As": 90.0, "Af": 89.0, "Ms": 80.0})])  # fmt: skip
+    assert pd["As"]["clausius_clapeyron"] is True and pd["As"]["why_not"] is None
+    assert pd["Af"]["clausius_clapeyron"] is False and "wrong sign" in pd["Af"]["why_not"]
+    assert pd["Mf"]["clausius_clapeyron"] is False and "fewer than two loads" in pd["Mf"]["why_not"]
+
+
+def test_a_campaign_folder_skips_aborted_and_incomplete_sessions(tmp_path, cli_in_process):
+    """Issue 24: `characterize sessions/plans-out/example/0*` with a retried step's aborted try and
+    an incomplete step: one line each, the others characterized, exit 0; alone, exit 2."""
+    br = Branches()
+    good = _bench_session(tmp_path / "01-good", br, 2, 1.0)
+    aborted = _bench_session(tmp_path / "02-try1", br, 2, 2.0)
+    meta = json.loads((aborted / "session.json").read_text())
+    (aborted / "session.json").write_text(json.dumps(
+        {**meta, "status": "aborted", "end_reason": "interrupted by the operator"}))  # fmt: skip
+    incomplete = tmp_path / "03-incomplete"
+    write_session(incomplete, {"wire": {"length_mm": 50}},
+                  {"temperature_C": np.linspace(20, 100, 50),
+                   "position_mm": np.linspace(0, 1, 50)})  # fmt: skip
+    out = tmp_path / "c.json"
+    proc = cli_in_process("characterize", good, aborted, incomplete, "--json", out)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 2, lines
+    assert "02-try1: skipped: aborted (interrupted by the operator)" in lines[0]
+    assert "03-incomplete: skipped: no complete thermal cycle" in lines[1]
+    doc = json.loads(out.read_text())
+    assert [s["session"] for s in doc["sessions"]] == [str(good)]
+    assert [s["session"] for s in doc["skipped"]] == [str(aborted), str(incomplete)]
+    proc = cli_in_process("characterize", aborted, "--include-aborted", "--json", out)
+    assert proc.returncode == 0 and "skipped" not in proc.stderr
+    out.unlink()
+    proc = cli_in_process("characterize", incomplete, "--json", out)
+    assert proc.returncode == 2 and "no complete thermal cycle" in proc.stderr
+    assert not out.exists()

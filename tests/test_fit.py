@@ -77,3 +77,27 @@ def test_fit_and_predict_bad_input(tmp_path, cli_in_process):
     proc = run_cli("predict", "--model", bad, S1, "--out", tmp_path / "p.csv")
     assert proc.returncode == 2 and "not JSON" in proc.stderr
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_fit_masks_rows_flagged_invalid_and_counts_them(tmp_path, cli_in_process):
+    """Issue 24: a row the sensor flagged invalid is masked by its flag even when a (stale)
+    position is still in it; the masked rows are counted, printed and in --json."""
+    import shutil
+
+    from smabench.sessions import FLAG_SENSOR_INVALID
+
+    s = shutil.copytree(S1, tmp_path / "s")
+    with open(s / "samples.csv", newline="") as fh:
+        rows = list(csv.reader(fh))
+    fl, pos = rows[0].index("flags"), rows[0].index("position_mm")
+    for k in (50, 51, 52, len(rows) // 2, len(rows) - 10):
+        rows[k][fl] = str(int(rows[k][fl] or 0) | FLAG_SENSOR_INVALID)
+    with open(s / "samples.csv", "w", newline="") as fh:
+        csv.writer(fh, lineterminator="\n").writerows(rows)
+    want = sum(1 for r in rows[1:] if not r[pos] or int(r[fl] or 0) & FLAG_SENSOR_INVALID)
+    proc = cli_in_process("fit", s, "--model", "sigmoid", "--json", tmp_path / "f.json")
+    assert proc.returncode == 0, proc.stderr
+    rep = json.loads((tmp_path / "f.json").read_text())
+    assert rep["n_masked"] == want >= 5
+    assert rep["n_points"] == len(rows) - 1 - want
+    assert f"{want} row(s) masked" in proc.stdout

@@ -230,3 +230,28 @@ def test_reversal_memory_driven_by_position_and_of_limited_depth():
     short.reverse((70.0, 1.5))
     assert short.stack == [(70.0, 1.5)]  # the paper's moved first common point only
     assert short.start_target() == ((70.0, 1.5), (100.0, 0.0))
+
+
+def test_a_history_that_starts_cold_starts_at_the_martensite_end():
+    """Issue 24's demo: a recording that starts cold and first moves down a little must not start
+    on the cooling branch (mid-stroke where the data never cooled that far) and then hold there
+    on heating; it starts at the martensite end, whichever way the temperature moves first."""
+    from smabench.physics.identify import FitResult
+    from smabench.physics.loop_models import FractionBranch, SigmoidModel, starts_heating
+
+    model = SigmoidModel(
+        0.0, 0.0, -4.0, 0.0,
+        FractionBranch(60.0, 2.0, 60.0, 5.0, 0.0),
+        FractionBranch(40.0, 2.0, 25.0, 20.0, 0.5),  # cooling branch half done at 25 °C
+        t_ref_c=25.0,
+    )  # fmt: skip
+    t = np.concatenate([np.linspace(25.0, 22.0, 20), np.linspace(22.0, 90.0, 200),
+                        np.linspace(90.0, 22.0, 200)])  # fmt: skip
+    assert starts_heating(model, 25.0) and not starts_heating(model, 90.0)
+    fit = FitResult("sigmoid", {}, 0.0, 0.0, 0.0, t.size, model, deadband_k=1.0)
+    y = fit.predict(t)
+    assert np.all(np.abs(y[:40]) < 0.05)  # martensite up to 30 °C, not −2 mm (mid-stroke)
+    heat = slice(20, 220)
+    at_55 = 20 + int(np.argmin(np.abs(t[heat] - 55.0)))
+    at_70 = 20 + int(np.argmin(np.abs(t[heat] - 70.0)))
+    assert y[at_70] < y[at_55] - 2.0  # on heating it transforms at 60 °C, not held

@@ -76,14 +76,21 @@ def summary_lines(doc: dict[str, Any]) -> list[str]:
             f"actuation {_fmt(None if med['actuation_strain'] is None else med['actuation_strain'] * 100, '.2f')} %, "  # noqa: E501
             f"hysteresis {_fmt(med['hysteresis_K'])} K, accumulated residual "
             f"{_fmt(cyc[-1]['accumulated_residual_strain'] * 100, '.3f')} %"
+            + (f"; {s['n_masked_rows']} row(s) masked (position flagged invalid or empty)"
+               if s.get("n_masked_rows") else "")
         )
     pd = doc.get("phase_diagram")
     if pd:
         parts = [
             f"{k} {_fmt(pd[k]['slope_MPa_per_K'], '.2f')} ± {_fmt(pd[k]['uncertainty'], '.2f')}"
+            + ("" if pd[k].get("clausius_clapeyron", True) else f" ({pd[k]['why_not']})")
             for k in TEMPERATURE_KEYS
         ]
         lines.append("phase diagram dσ/dT (MPa/K): " + ", ".join(parts))
+        bad = [k for k in TEMPERATURE_KEYS if not pd[k].get("clausius_clapeyron", True)]
+        if bad:
+            lines.append(f"  warning: {', '.join(bad)}: not a Clausius–Clapeyron slope "
+                         "(wrong sign, outside 3–20 MPa/K or no stress shift in the data)")
     return lines
 
 
@@ -96,7 +103,10 @@ def cmd_characterize(args: argparse.Namespace) -> int:
         scheduler=args.scheduler,
         workers=args.workers,
         scheduler_timeout_s=args.scheduler_timeout_s,
+        include_aborted=args.include_aborted,
     )
+    for s in doc["skipped"]:
+        print(f"smabench characterize: {s['session']}: skipped: {s['skipped']}", file=sys.stderr)
     for s in doc["sessions"]:
         for w in s["warnings"]:
             print(f"smabench characterize: {s['session']}: {w}", file=sys.stderr)
@@ -121,7 +131,9 @@ def add_commands(sub) -> None:
         help="ASTM E3097 per cycle (As, Af, Ms, Mf, strains, hysteresis) and the phase diagram",
         description="Split each session into thermal cycles and report the ASTM E3097 "
         "properties per cycle; with sessions at two loads or more, the Clausius–Clapeyron "
-        "slopes. Prefers the measured temperature_C, else the estimate (marked 'estimated').",
+        "slopes. Prefers the measured temperature_C, else the estimate (marked 'estimated'). "
+        "Aborted sessions and sessions with no complete thermal cycle are skipped with one line "
+        "each (exit 2 when nothing is left).",
     )
     s.add_argument("sessions", nargs="+", help="session folders or CSVs")
     s.add_argument("--json", required=True, help="write the results here (JSON)")
@@ -130,6 +142,8 @@ def add_commands(sub) -> None:
     s.add_argument("--wire-length-mm", type=float, help="wire length when a session lacks it")
     s.add_argument("--wire-diameter-mm", type=float, help="wire diameter when a session lacks it")
     s.add_argument("--load-mpa", type=float, help="stress of every session, MPa (overrides)")
+    s.add_argument("--include-aborted", action="store_true",
+                   help="characterize aborted sessions too (default: skipped with one line)")
     s.add_argument(
         "--scheduler",
         help="Dask scheduler address (tcp://HOST:PORT): one session per task on that cluster "

@@ -85,6 +85,11 @@ class CharacterizeError(ValueError):
     """Input that cannot give any E3097 result (message says why)."""
 
 
+class NoCompleteCycleError(CharacterizeError):
+    """The session holds no complete thermal cycle (an incomplete or aborted step): skipped
+    among others, refused alone."""
+
+
 @dataclass
 class Line:
     """``y = a + b·x`` from least squares, with the RMS residual and point count."""
@@ -529,7 +534,7 @@ class CycleStream:
     def result(self):
         """(cycles, kept branches); :class:`CharacterizeError` when there is nothing to report."""
         if not self._k:
-            raise CharacterizeError(
+            raise NoCompleteCycleError(
                 "no complete thermal cycle (heating then cooling across the temperature range)"
             )
         if not self.cycles:

@@ -22,6 +22,7 @@ from smabench.characterize.e3097 import (
     BranchResult,
     CharacterizeError,
     CycleStream,
+    NoCompleteCycleError,
 )
 from smabench.sessions import (
     FLAGS_POSITION_INVALID,
@@ -83,6 +84,7 @@ def characterize_session(
     stress: list[float] = []
     files = sample_files(p) if p.is_dir() else [p]
     rows_seen = 0
+    n_masked = 0
     for k, data in enumerate(iter_sample_chunks(p, want)):
         if source is None:
             for col, name in (("temperature_C", "measured"), ("temperature_est_C", "estimated")):
@@ -96,6 +98,7 @@ def characterize_session(
         if "flags" in data:
             flags = np.nan_to_num(data["flags"]).astype(np.int64)
             position[(flags & FLAGS_POSITION_INVALID) != 0] = np.nan
+        n_masked += int((~(np.isfinite(position) & np.isfinite(t_c))).sum())
         if "stress_MPa" in data and np.isfinite(data["stress_MPa"]).any():
             stress.append(float(np.nanmedian(data["stress_MPa"])))
         t_s = data.get("t_s")
@@ -105,11 +108,11 @@ def characterize_session(
         try:
             stream.feed(t_c, position / float(length_mm), t_s, final=k == len(files) - 1)
         except CharacterizeError as exc:
-            raise CharacterizeError(f"{path}: {exc}") from None
+            raise type(exc)(f"{path}: {exc}") from None
     try:
         cycles, kept = stream.result()
     except CharacterizeError as exc:
-        raise CharacterizeError(f"{path}: {exc}") from None
+        raise type(exc)(f"{path}: {exc}") from None
     load_mpa = overrides.load_mpa
     load_from = "command line"
     if load_mpa is None and stress:
@@ -133,12 +136,36 @@ def characterize_session(
         "temperature_noise_K": stream.noise_k,
         "temperature_smoothing_samples": stream.window,
         "n_cycles": len(cycles),
+        "n_masked_rows": n_masked,
         "warnings": warnings,
         "cycles": cycles,
     }
     if keep_cycles:
         out["_branches"] = {k: v for k, v in kept.items()}
     return out
+
+
+def characterize_or_skip(
+    path: str,
+    overrides: Overrides = Overrides(),  # noqa: B008 - frozen, immutable
+    keep_cycles: Sequence[int] | str = (),
+    include_aborted: bool = False,
+) -> dict[str, Any]:
+    """:func:`characterize_session`, or ``{"session": path, "skipped": why}`` for a session that
+    a campaign folder holds but that has nothing to characterize: an aborted step (status
+    ``aborted`` in session.json; a retried step's first try) unless ``include_aborted``, or a
+    session with no complete thermal cycle (an incomplete step). Other bad input still raises."""
+    meta = load_session_meta_check(path)
+    if meta.get("status") == "aborted" and not include_aborted:
+        reason = meta.get("end_reason") or meta.get("reason") or "no reason recorded"
+        return {"session": str(path), "skipped": f"aborted ({reason})"}
+    try:
+        return characterize_session(path, overrides, keep_cycles)
+    except NoCompleteCycleError as exc:
+        why = str(exc)
+        prefix = f"{path}: "
+        return {"session": str(path), "skipped": why[len(prefix):] if why.startswith(prefix)
+                else why}  # fmt: skip
 
 
 # --------------------------------------------------------------------------- phase diagram
@@ -169,7 +196,9 @@ def phase_diagram(sessions: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
                     unc.append(u if u is not None and u > 0 else math.nan)
         sig_a, temp_a, unc_a = np.array(sig), np.array(temp), np.array(unc)
         if len(set(np.round(sig_a, 6))) < 2:
-            out[key] = {"slope_MPa_per_K": None, "uncertainty": None, "n_points": len(sig)}
+            out[key] = {"slope_MPa_per_K": None, "uncertainty": None, "n_points": len(sig),
+                        "clausius_clapeyron": False,
+                        "why_not": "determined at fewer than two loads"}  # fmt: skip
             continue
         A = np.column_stack([np.ones_like(sig_a), sig_a])
         coef, *_ = np.linalg.lstsq(A, temp_a, rcond=None)
@@ -186,13 +215,44 @@ def phase_diagram(sessions: Sequence[dict[str, Any]]) -> dict[str, Any] | None:
             cov = cov_w if cov is None else np.maximum(cov, cov_w)
         dk = math.sqrt(cov[1, 1]) if cov is not None else math.nan
         slope = 1.0 / k if k != 0 else math.nan
+        span_mpa = float(sig_a.max() - sig_a.min())
+        why = why_not_clausius_clapeyron(slope, k * span_mpa, dk * span_mpa, span_mpa)
         out[key] = {
             "slope_MPa_per_K": slope if math.isfinite(slope) else None,
             "uncertainty": (dk / k**2) if k != 0 and math.isfinite(dk) else None,
             "T_at_0MPa_C": float(coef[0]),
             "n_points": n,
+            "shift_K": k * span_mpa,
+            "clausius_clapeyron": why is None,
+            "why_not": why,
         }
     return out
+
+
+CC_SLOPE_RANGE_MPA_PER_K = (3.0, 20.0)
+"""Clausius–Clapeyron slopes of NiTi wires lie in this range (about 5–10 MPa/K typically)."""
+MIN_SHIFT_SIGMAS = 2.0
+"""A stress shift is in the data when the fitted temperature change over the loads is at least
+this many standard errors from zero."""
+
+
+def why_not_clausius_clapeyron(slope_mpa_per_k: float, shift_k: float, shift_se_k: float,
+                               span_mpa: float) -> str | None:  # fmt: skip
+    """None when a fitted dσ/dT reads as a Clausius–Clapeyron slope, else why not: the wrong sign
+    (the temperature must rise with the stress), outside :data:`CC_SLOPE_RANGE_MPA_PER_K`, or no
+    stress shift in the data (the temperature change over the loads, ``shift_k`` ± ``shift_se_k``
+    K over ``span_mpa`` MPa, not distinguishable from zero)."""
+    lo, hi = CC_SLOPE_RANGE_MPA_PER_K
+    if math.isfinite(shift_se_k) and abs(shift_k) < MIN_SHIFT_SIGMAS * shift_se_k:
+        return (f"no stress shift in the data ({shift_k:+.1f} ± {shift_se_k:.1f} K over "
+                f"{span_mpa:.0f} MPa)")  # fmt: skip
+    if not math.isfinite(slope_mpa_per_k):
+        return f"no stress shift in the data ({shift_k:+.1f} K over {span_mpa:.0f} MPa)"
+    if slope_mpa_per_k < 0:
+        return "wrong sign (the temperature falls as the stress rises)"
+    if not lo <= slope_mpa_per_k <= hi:
+        return f"outside {lo:g}–{hi:g} MPa/K"
+    return None
 
 
 def characterize_many(
@@ -202,23 +262,35 @@ def characterize_many(
     scheduler: str | None = None,
     workers: int | None = None,
     scheduler_timeout_s: float = SCHEDULER_TIMEOUT_S,
+    include_aborted: bool = False,
 ) -> dict[str, Any]:
     """The ``smabench characterize`` JSON document for several sessions (plus ``_branches``
-    inside each session entry when ``keep_cycles``; strip before writing)."""
+    inside each session entry when ``keep_cycles``; strip before writing). Sessions with nothing
+    to characterize (:func:`characterize_or_skip`) are listed under ``skipped`` with the reason;
+    :class:`NoCompleteCycleError` when every session was skipped."""
     for p in paths:  # every path checked before any work is sent out
         load_session_meta_check(p)
-    results = run_tasks(
-        characterize_session,
-        [(str(p), overrides, keep_cycles if isinstance(keep_cycles, str) else tuple(keep_cycles))
-         for p in paths],  # fmt: skip
+    keep = keep_cycles if isinstance(keep_cycles, str) else tuple(keep_cycles)
+    outcomes = run_tasks(
+        characterize_or_skip,
+        [(str(p), overrides, keep, include_aborted) for p in paths],
         scheduler=scheduler,
         workers=workers,
         scheduler_timeout_s=scheduler_timeout_s,
     )
+    results = [r for r in outcomes if "skipped" not in r]
+    skipped = [r for r in outcomes if "skipped" in r]
+    if not results:
+        if len(skipped) == 1:
+            raise NoCompleteCycleError(f"{skipped[0]['session']}: {skipped[0]['skipped']}")
+        first = skipped[0]
+        raise NoCompleteCycleError(f"nothing to characterize: all {len(skipped)} sessions "
+                                   f"skipped (first: {first['session']}: {first['skipped']})")
     return {
         "format": "smabench-characterize/1",
         "standard": "ASTM E3097 (tangent-line intersections; see smabench.characterize.e3097)",
         "sessions": results,
+        "skipped": skipped,
         "phase_diagram": phase_diagram(results),
     }
 

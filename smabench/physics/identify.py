@@ -40,6 +40,7 @@ from smabench.physics.loop_models import (
     SigmoidModel,
     branch_directions,
     run_history,
+    starts_heating,
 )
 from smabench.physics.memory import branch_runs
 
@@ -87,8 +88,10 @@ class FitResult:
         t = np.asarray(temperature_c, dtype=float)
         if hasattr(self.loop_model, "predict"):
             return self.loop_model.predict(t)
-        heating = branch_directions(t, self.deadband_k)
-        return run_history(self.loop_model, t, self.deadband_k, bool(heating[0]))
+        if t.size == 0:
+            return np.empty(0)
+        heating = starts_heating(self.loop_model, float(t[0]))
+        return run_history(self.loop_model, t, self.deadband_k, heating)
 
     def stepper(self) -> LoopStepper:
         """An online stepper for this model (closed-form models only)."""
@@ -386,12 +389,13 @@ def partial_loop_runs(loop: LoopData, model) -> list | None:
     when at least :data:`PARTIAL_SHARE` of the samples lie on minor branches (branches that
     start at a reversal inside the loop), else None: a major loop fit is all there is to do.
     ``model``: a loop model, or :class:`CommonPoints` (e.g. the data's own)."""
+    t = loop.temperature_c
     if isinstance(model, CommonPoints):
-        cp = model
+        cp, heating = model, bool(t[0] < 0.5 * (model.t1_c + model.t2_c))
     else:
         cp = model.common_points() if hasattr(model, "common_points") else model.cp
-    t = loop.temperature_c
-    runs = branch_runs(t, cp.t1_c, cp.t2_c, loop.deadband_k, bool(loop.heating[0]))
+        heating = starts_heating(model, float(t[0]))
+    runs = branch_runs(t, cp.t1_c, cp.t2_c, loop.deadband_k, heating)
     minor = sum(r.i1 - r.i0 for r in runs if r.start >= 0 and r.i1 - r.i0 >= 3)
     return runs if minor >= max(MIN_POINTS, PARTIAL_SHARE * t.size) else None
 
@@ -413,7 +417,8 @@ def _history_samples(loop: LoopData, model, runs) -> tuple[np.ndarray, np.ndarra
         keep[r.i0] = keep[r.i1 - 1] = True
     cp = model.common_points() if hasattr(model, "common_points") else model.cp
     ts, ys = t[keep], y[keep]
-    return ts, ys, branch_runs(ts, cp.t1_c, cp.t2_c, loop.deadband_k, bool(loop.heating[0]))
+    heating = starts_heating(model, float(ts[0]))
+    return ts, ys, branch_runs(ts, cp.t1_c, cp.t2_c, loop.deadband_k, heating)
 
 
 def fit_sigmoid(loop: LoopData) -> SigmoidModel:
@@ -457,10 +462,20 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
     # loops, by the data's own common points)
     partial = partial_loop_runs(loop, find_common_points(loop)) is not None
     k = int(math.ceil(t.size / (HISTORY_SAMPLES if partial else MAJOR_FIT_SAMPLES)))
-    x = _refine(lambda x: build(x).evaluate(t[::k], h[::k]) - y[::k], x0, lo, hi, "sigmoid model")
+
+    def major_cost(x) -> float:
+        return float(np.sum((build(x).evaluate(t[::k], h[::k]) - y[::k]) ** 2))
+
+    # two starts (sharp and broad transformations): a single start can stall with one branch's
+    # fraction held part-way through the data's range (the demo session of issue 24)
+    starts = [x0, [*x0[:5], 5 * w, x0[6], 15 * w, 0.5, x0[9], 5 * w, x0[11], 15 * w, 0.5]]
+    fits = [_refine(lambda x: build(x).evaluate(t[::k], h[::k]) - y[::k], x_start, lo, hi,
+                    "sigmoid model") for x_start in starts]  # fmt: skip
+    x = min(fits, key=major_cost)
     runs = partial_loop_runs(loop, build(x))
     if runs is None:
         return build(x)
+    major_law = build(x)
     # partial loops in the data. With a well-sampled major loop: the major-loop law again on the
     # samples of its branches only, then the minor-branch law's θ along the whole history (a 1-D
     # search). Without (cycles that never leave the model's transformation tails): every
@@ -480,7 +495,8 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
         return m
 
     def residual(x, theta: float) -> np.ndarray:
-        return run_history(build_theta(x, theta), ts, loop.deadband_k, bool(h[0]), runs) - ys
+        m = build_theta(x, theta)
+        return run_history(m, ts, loop.deadband_k, starts_heating(m, ts[0]), runs) - ys
 
     theta = minimize_scalar(lambda th: float(np.sum(residual(x, th) ** 2)), bounds=THETA_BOUNDS,
                             method="bounded", options={"xatol": 0.05}).x  # fmt: skip
@@ -491,7 +507,18 @@ def fit_sigmoid(loop: LoopData) -> SigmoidModel:
         x, theta = x[:-1], x[-1]
     model = build_theta(x, theta)
     model.fitted_on_history = True
-    return model
+    # the refit along the history must not end worse than the major-loop law it started from,
+    # both run along the same history from the state its first samples show
+    major_law.fitted_on_history = True
+    return min((model, major_law), key=lambda m: _history_cost(m, loop))
+
+
+def _history_cost(model, loop: LoopData) -> float:
+    """Sum of squared errors of ``model`` run along the loop's whole history (as scored)."""
+    t = loop.temperature_c
+    pred = run_history(model, t, loop.deadband_k, starts_heating(model, float(t[0])))
+    err = pred - loop.position_mm
+    return float(np.sum(err**2)) if np.all(np.isfinite(err)) else math.inf
 
 
 def fit_preisach(loop: LoopData):

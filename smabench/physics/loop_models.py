@@ -658,6 +658,23 @@ class LoopStepper:
 SHORT_RUN = 8  # runs shorter than this are stepped point by point (numpy's overhead)
 
 
+def starts_heating(model, temperature_c: float) -> bool:
+    """The major branch a history starts on, from the state its first sample shows: a recording
+    that starts in the cold half of the model's transformation range (below the middle of its
+    common points) starts at the martensite end, on the heating branch from the cold common
+    point, whichever way the temperature moves first (a first move down is then a reversal on
+    the martensite line, not a start on the cooling branch at mid-stroke); one that starts in
+    the hot half starts at the austenite end, on the cooling branch. The cold half: below the
+    heating branch's half-transformation for a phase-fraction model (its common points follow
+    the tails of both branches, which the data need not constrain), else below the middle of
+    the common points."""
+    t0 = float(temperature_c)
+    if hasattr(model, "heating_branch"):
+        return model.heating_branch.xi_scalar(t0) < 0.5
+    cp = model.common_points() if hasattr(model, "common_points") else model.cp
+    return t0 < 0.5 * (cp.t1_c + cp.t2_c)
+
+
 def run_history(model, temperature_c, deadband_k: float, heating: bool = True,
                 runs=None) -> np.ndarray:  # fmt: skip
     """Length (mm) along a whole temperature history, the same as stepping a

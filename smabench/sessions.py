@@ -399,6 +399,7 @@ class DiskFullError(OSError):
 
 
 RESERVE_FILE = ".close-reserve"
+EVENTS_RESERVE_BYTES = 4096  # of the reserve, given back for events.jsonl when the disk fills
 """A few kB the writer sets aside at the start and frees to close a session on a full disk."""
 LOCK_FILE = ".recording.lock"
 """Held (``flock``) by the recording process while a session is running; gone at its end."""
@@ -619,6 +620,14 @@ class SessionWriter:
             msg = f"{self.folder}: no room for a session ({exc.strerror})"
             raise DiskFullError(exc.errno, msg) from None
 
+    def _shrink_reserve_for_events(self) -> None:
+        """On a full disk, give :data:`EVENTS_RESERVE_BYTES` of the reserve back at once, so the
+        safety chain's events (the end, the output off: ``events.jsonl``), written before the
+        closing, still fit; the rest stays for the closing."""
+        with contextlib.suppress(OSError):
+            path = self.folder / RESERVE_FILE
+            os.truncate(path, min(path.stat().st_size, RESERVE_BYTES - EVENTS_RESERVE_BYTES))
+
     def _free_reserve(self) -> None:
         (self.folder / RESERVE_FILE).unlink(missing_ok=True)
 
@@ -644,6 +653,7 @@ class SessionWriter:
                 full.reason = f"session folder not writable ({exc.strerror})"
             self.full = full.reason
             full.lost_lines = data.count(b"\n") - data.count(b"\n", 0, keep)
+            self._shrink_reserve_for_events()
             raise full from exc
 
     # ------------------------------------------------------------------ rows

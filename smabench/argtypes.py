@@ -7,6 +7,7 @@ Each refuses bad text with one line naming what was expected; argparse turns tha
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Callable
 
 
@@ -24,3 +25,20 @@ def positive(kind: type = float) -> Callable[[str], float]:
 
     return parse
 
+
+
+OUTPUT_HELP = "; '-' for standard output"
+"""Appended to the help of every file output option (``--out``/``--json``/``--csv``)."""
+
+
+def output_file(text: str) -> str:
+    """A file to write: ``-`` (standard output), a new or existing file, a FIFO, a device or a
+    symlink to one of those (:func:`smabench.sessions.atomic_write` writes each correctly); an
+    empty name or an existing folder is refused."""
+    if text == "-":
+        return text
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty file name")
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
+    return text

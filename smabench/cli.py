@@ -7,7 +7,9 @@ and nothing half-written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -15,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from smabench.argtypes import positive
+from smabench import __version__
+from smabench.argtypes import OUTPUT_HELP, output_file, positive
 
 log = logging.getLogger("smabench")
 
@@ -215,7 +218,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else None
     n = export_csv(args.session, args.out, columns)  # streamed chunk by chunk: one table
-    print(f"{n} rows written: {args.out}")
+    print(f"{n} rows written: {args.out}")  # on stderr when the CSV goes to stdout (main)
     return 0
 
 
@@ -283,6 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Lab-bench application for shape-memory-alloy wire actuators.",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.add_argument("--version", action="version", version=f"smabench {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("import", help="import a measured loop from a text file into a session")
@@ -352,7 +356,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("export", help="export a session's samples as CSV for spreadsheets")
     s.add_argument("session", help="session folder or CSV")
-    s.add_argument("--out", required=True, help="CSV file to write")
+    s.add_argument("--out", required=True, type=output_file, help="CSV file to write" + OUTPUT_HELP)
     s.add_argument("--columns", help="comma-separated columns to keep, in this order (default all)")
     s.set_defaults(func=cmd_export)
 
@@ -438,11 +442,26 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "simulate" and not args.out:
         parser.error("simulate needs --out")
+    to_stdout = [k for k in OUTPUT_OPTIONS if _is_stdout(getattr(args, k, None))]
+    if len(to_stdout) > 1:
+        both = " and --".join(to_stdout)
+        print(f"smabench {args.command}: error: only one output can be standard output, got "
+              f"--{both}", file=sys.stderr)  # fmt: skip
+        return EXIT_USAGE
     try:
+        if to_stdout:  # the data go to stdout; what the command prints goes to stderr
+            from smabench.sessions import data_to_stdout
+
+            with data_to_stdout():
+                return int(args.func(args) or 0)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("smabench: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of our stdout went away (`| head`): as cat does
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except USER_ERRORS as exc:
         if args.verbose:
             raise
@@ -460,6 +479,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"smabench {args.command}: error: {missing_library_hint(exc)}", file=sys.stderr)
         return EXIT_USAGE
+
+
+OUTPUT_OPTIONS = ("out", "json", "csv", "plot")
+"""The destinations of option values that may be ``-`` (standard output)."""
+
+
+def _is_stdout(path: object) -> bool:
+    from smabench.sessions import is_stdout
+
+    return isinstance(path, str) and is_stdout(path)
 
 
 def device_errors() -> tuple[type[BaseException], ...]:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import logging
 import os
 import sys
@@ -64,9 +65,22 @@ def cmd_import(args: argparse.Namespace) -> int:
         load_kg=args.load_kg,
         wire_diameter_mm=args.wire_diameter_mm,
         decimal=args.decimal,
+        progress=_import_progress,
     )
+    from smabench.sessions import META_FILE
+
+    done = json.loads((folder / META_FILE).read_text(encoding="utf-8"))["import"]
+    empty = done["empty_cells"]
+    kept = (f", {sum(empty.values())} empty cell(s) kept as NaN ("
+            + ", ".join(f"{k} {v}" for k, v in empty.items()) + ")") if empty else ""  # fmt: skip
+    print(f"{done['rows']} rows imported{kept}")
     print(f"session written: {folder}")
     return 0
+
+
+def _import_progress(rows: int, bytes_read: int, bytes_total: int) -> None:
+    print(f"import: {rows / 1e6:.2f} M rows, {bytes_read / 1e6:.0f} of {bytes_total / 1e6:.0f} MB",
+          file=sys.stderr, flush=True)  # fmt: skip
 
 
 # --------------------------------------------------------------------------- simulate
@@ -413,6 +427,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-n", type=positive(int), default=500, help="requests per figure (500)")
     b.add_argument("--telemetry-s", type=positive(), default=5.0, help="telemetry count, s")
     b.set_defaults(func=cmd_bench_link)
+    from smabench.bench.import_bench import add_bench_import
+
+    add_bench_import(bsub)
     from smabench.analysis.bench import add_bench_analyze
     from smabench.bench.control_bench import add_bench_control
     from smabench.gui.bench_gui import add_bench_gui
@@ -465,7 +482,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except USER_ERRORS as exc:
         if args.verbose:
             raise
-        msg = str(exc) or exc.__class__.__name__
+        msg = one_line(str(exc) or exc.__class__.__name__)
         print(f"smabench {args.command}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE
     except device_errors() as exc:  # a port that cannot be opened, a device that does not answer
@@ -481,7 +498,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
 
 
-OUTPUT_OPTIONS = ("out", "json", "csv", "plot")
+OUTPUT_OPTIONS = ("out", "json", "csv", "plot", "predictions")
 """The destinations of option values that may be ``-`` (standard output)."""
 
 
@@ -489,6 +506,12 @@ def _is_stdout(path: object) -> bool:
     from smabench.sessions import is_stdout
 
     return isinstance(path, str) and is_stdout(path)
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters escaped (a file's bytes quoted in an error message
+    must not break the one line on stderr)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 def device_errors() -> tuple[type[BaseException], ...]:

@@ -21,7 +21,8 @@ def add_arguments(s: argparse.ArgumentParser) -> None:
     s.add_argument("--json", metavar="OUT", type=output_file,
                    help="write the verdict, RMSEs and parameters here" + OUTPUT_HELP)
     s.add_argument("--report", metavar="DIR", help="write report.md and PNG plots here")
-    s.add_argument("--predictions", metavar="OUT.csv", help="write measured/baseline/extended")
+    s.add_argument("--predictions", metavar="OUT.csv", type=output_file,
+                   help="write measured/baseline/extended" + OUTPUT_HELP)
     s.add_argument("--load-kg", type=positive(), help="hanging load, kg (overrides session.json)")
     s.add_argument("--wire-length-mm", type=positive(), help="wire length, mm (overrides)")
     s.add_argument("--wire-diameter-mm", type=positive(), help="wire diameter, mm (overrides)")
@@ -47,7 +48,8 @@ def add_commands(sub) -> None:
     s = sub.add_parser(
         "analyze",
         help="find where the simulation is wrong and name the physical cause",
-        description=__doc__,
+        description="Find where the simulation is wrong on recorded sessions, and name the "
+        "physical cause.",
     )
     add_arguments(s)
     s.set_defaults(func=cmd_analyze)

@@ -454,8 +454,8 @@ def add_commands(sub) -> None:
     s.add_argument("--load-kg", type=float, default=2.0, help="hanging load, kg (default 2)")
     s.add_argument("--tcp-port", type=int, default=0, help="Modbus TCP port (0 = any free)")
     s.add_argument(
-        "--control-stdin", action="store_true", help="read fault-injection commands on stdin"
-    )
+        "--control-stdin", action="store_true", help=argparse.SUPPRESS
+    )  # internal: the parent process's fault-injection commands on stdin
     add_mock_arguments(s)
     s.add_argument(
         "--sensor-map",

@@ -56,13 +56,14 @@ def test_export_to_dev_stdout_as_root_keeps_the_symlink(
     assert proc.stdout.encode() == reference_csv
 
 
-def test_export_to_a_fifo_another_process_reads(installed: Installed, session_1kg: Path,
-                                                cwd: Path, reference_csv: bytes) -> None:  # fmt: skip
+def test_export_to_a_fifo_another_process_reads(
+    installed: Installed, session_1kg: Path, cwd: Path, reference_csv: bytes
+) -> None:
     fifo = cwd / "pipe.csv"
     os.mkfifo(fifo)
     reader = subprocess.Popen(
-        [sys.executable, "-c", "import sys; sys.stdout.buffer.write(open(sys.argv[1], 'rb').read())",
-         str(fifo)], stdout=subprocess.PIPE,
+        [sys.executable, "-c", "import sys; sys.stdout.buffer.write(open(sys.argv[1], 'rb')"
+         ".read())", str(fifo)], stdout=subprocess.PIPE,
     )  # fmt: skip
     try:
         installed.ok("export", session_1kg, "--out", fifo, cwd=cwd, timeout_s=120)
@@ -73,8 +74,9 @@ def test_export_to_a_fifo_another_process_reads(installed: Installed, session_1k
     assert fifo.is_fifo()  # still the FIFO, not a file renamed over it
 
 
-def test_export_through_a_symlink_writes_its_target(installed: Installed, session_1kg: Path,
-                                                    cwd: Path, reference_csv: bytes) -> None:  # fmt: skip
+def test_export_through_a_symlink_writes_its_target(
+    installed: Installed, session_1kg: Path, cwd: Path, reference_csv: bytes
+) -> None:
     (cwd / "results").mkdir()
     target = cwd / "results" / "run.csv"
     target.write_text("old\n")

@@ -111,6 +111,8 @@ INTEGER_COLUMNS = frozenset({"cycle", "flags", "rows", "flagged_rows"})
 SAMPLES_FILE = "samples.csv"
 META_FILE = "session.json"
 CYCLES_FILE = "cycles.csv"
+WRITE_BLOCK_ROWS = 65_536
+"""Rows formatted and written at once by :meth:`SessionWriter.append_arrays` (≈ 10 MB of text)."""
 CHUNK_ROWS = 1_000_000
 """Rows per samples chunk file before the writer rotates (≈ 80 MB, 83 min at 200 Hz)."""
 _CHUNK_RE = re.compile(r"^samples-(\d{5})\.csv$")
@@ -609,7 +611,7 @@ class SessionWriter:
                     ):
                         self._rotate()
                     room = 2 * self.chunk_rows - self._chunk_n
-                j = min(b, i + room)
+                j = min(b, i + room, i + WRITE_BLOCK_ROWS)  # memory: one block's text
                 if new_cycle and i == a:
                     self._cycle_done()
                     summary.reset(cycle[a])

@@ -285,8 +285,8 @@ def _read_lines(
             values = [float(fields[i]) if fields[i] else math.nan for i in keep]
         except ValueError:
             raise TextImportError(f"{path}: line {lineno}: not a number in {stripped!r}") from None
-        if any(math.isinf(v) for v in values):
-            raise TextImportError(f"{path}: line {lineno}: infinite value in {stripped!r}")
+        if any(fields[i] and not math.isfinite(v) for i, v in zip(keep, values, strict=True)):
+            raise TextImportError(f"{path}: line {lineno}: NaN or infinite value in {stripped!r}")
         rows.append(values)
     table = np.asarray(rows, dtype=float).reshape(len(rows), len(keep))
     return {names[i]: table[:, k] for k, i in enumerate(keep)}
@@ -319,7 +319,7 @@ def _read_arrow(
     source = open(path, "rb")  # noqa: SIM115 - closed below
     source.seek(offset)
     chunks: dict[str, list[np.ndarray]] = {n: [] for n in want.values()}
-    rows = 0
+    rows = empty = 0
     try:
         reader = pacsv.open_csv(
             source,
@@ -331,7 +331,7 @@ def _read_arrow(
                                              ignore_empty_lines=True),
             convert_options=pacsv.ConvertOptions(
                 column_types={c: pa.float64() for c in want}, include_columns=list(want),
-                null_values=["", "nan", "NaN", "NAN"], strings_can_be_null=True,
+                null_values=[""], strings_can_be_null=True,
                 decimal_point=layout.decimal,
             ),
         )  # fmt: skip
@@ -342,7 +342,9 @@ def _read_arrow(
             progress = None
         for batch in reader:
             for c, n in want.items():
-                chunks[n].append(batch.column(c).to_numpy(zero_copy_only=False))
+                col = batch.column(c)
+                empty += col.null_count
+                chunks[n].append(col.to_numpy(zero_copy_only=False))
             rows += batch.num_rows
             if progress is not None and time.monotonic() - last >= PROGRESS_S:
                 progress(rows, min(size, int(offset + rows * row_bytes)), size)
@@ -352,8 +354,8 @@ def _read_arrow(
     finally:
         source.close()
     data = {n: np.concatenate(c) if c else np.zeros(0) for n, c in chunks.items()}
-    if any(np.isinf(v).any() for v in data.values()):
-        return None
+    if sum(int(np.count_nonzero(~np.isfinite(v))) for v in data.values()) != empty:
+        return None  # a written nan or inf: the line reader names its line
     if progress is not None:
         progress(rows, size, size)
     return data
@@ -365,9 +367,9 @@ def read_table(
 ) -> tuple[dict[str, np.ndarray], Layout]:  # fmt: skip
     """Read the table of ``path`` into named columns; returns (columns, layout).
 
-    Every line from the table's first on is a data row: an empty cell (or ``nan``) is kept as
-    NaN and counted in ``layout.empty_cells``; a cell that is not a number, a line with another
-    number of cells or an infinity is an error naming the line. A large file streams (pyarrow's
+    Every line from the table's first on is a data row: an empty cell is kept as NaN and
+    counted in ``layout.empty_cells``; a cell that is not a number, a written NaN or infinity or
+    a line with another number of cells is an error naming the line. A large file streams (pyarrow's
     CSV reader, ``progress`` called about once a second) and is never held as text."""
     path = Path(path)
     head, whole = _read_head(path)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 from collections.abc import Callable
 
 
@@ -83,4 +84,21 @@ def sensor_map(text: str) -> str:
         load_map(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+OUTPUT_HELP = "; '-' for standard output"
+"""Appended to the help of every file output option (``--out``/``--json``/``--csv``)."""
+
+
+def output_file(text: str) -> str:
+    """A file to write: ``-`` (standard output), a new or existing file, a FIFO, a device or a
+    symlink to one of those (:func:`smabench.sessions.atomic_write` writes each correctly); an
+    empty name or an existing folder is refused."""
+    if text == "-":
+        return text
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty file name")
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text} is a folder, not a file")
     return text

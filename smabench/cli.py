@@ -7,7 +7,10 @@ and nothing half-written.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import logging
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -16,7 +19,8 @@ from typing import NoReturn
 
 import numpy as np
 
-from smabench.argtypes import positive
+from smabench import __version__
+from smabench.argtypes import OUTPUT_HELP, output_file, positive
 from smabench.settings import arg_type
 
 log = logging.getLogger("smabench")
@@ -71,9 +75,22 @@ def cmd_import(args: argparse.Namespace) -> int:
         load_kg=args.load_kg,
         wire_diameter_mm=args.wire_diameter_mm,
         decimal=args.decimal,
+        progress=_import_progress,
     )
+    from smabench.sessions import META_FILE
+
+    done = json.loads((folder / META_FILE).read_text(encoding="utf-8"))["import"]
+    empty = done["empty_cells"]
+    kept = (f", {sum(empty.values())} empty cell(s) kept as NaN ("
+            + ", ".join(f"{k} {v}" for k, v in empty.items()) + ")") if empty else ""  # fmt: skip
+    print(f"{done['rows']} rows imported{kept}")
     print(f"session written: {folder}")
     return 0
+
+
+def _import_progress(rows: int, bytes_read: int, bytes_total: int) -> None:
+    print(f"import: {rows / 1e6:.2f} M rows, {bytes_read / 1e6:.0f} of {bytes_total / 1e6:.0f} MB",
+          file=sys.stderr, flush=True)  # fmt: skip
 
 
 # --------------------------------------------------------------------------- simulate
@@ -228,7 +245,7 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     columns = [c.strip() for c in args.columns.split(",")] if args.columns else None
     n = export_csv(args.session, args.out, columns)  # streamed chunk by chunk: one table
-    print(f"{n} rows written: {args.out}")
+    print(f"{n} rows written: {args.out}")  # on stderr when the CSV goes to stdout (main)
     return 0
 
 
@@ -313,6 +330,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         description="Lab-bench application for shape-memory-alloy wire actuators.",
     )
     p.add_argument("-v", "--verbose", action="store_true", help="log debug messages")
+    p.add_argument("--version", action="version", version=f"smabench {__version__}")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("import", help="import a measured loop from a text file into a session")
@@ -391,7 +409,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     s = sub.add_parser("export", help="export a session's samples as CSV for spreadsheets")
     s.add_argument("session", help="session folder or CSV")
-    s.add_argument("--out", required=True, help="CSV file to write")
+    s.add_argument("--out", required=True, type=output_file, help="CSV file to write" + OUTPUT_HELP)
     s.add_argument("--columns", help="comma-separated columns to keep, in this order (default all)")
     s.set_defaults(func=cmd_export)
 
@@ -461,6 +479,9 @@ def _add_bench_commands(sub) -> None:
     b.add_argument("-n", type=positive(int), default=500, help="requests per figure (500)")
     b.add_argument("--telemetry-s", type=positive(), default=5.0, help="telemetry count, s")
     b.set_defaults(func=cmd_bench_link)
+    from smabench.bench.import_bench import add_bench_import
+
+    add_bench_import(bsub)
     from smabench.analysis.bench import add_bench_analyze
     from smabench.bench.control_bench import add_bench_control
     from smabench.gui.bench_gui import add_bench_gui
@@ -487,15 +508,30 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if args.command == "simulate" and not args.out:
         parser.error("simulate needs --out")
+    to_stdout = [k for k in OUTPUT_OPTIONS if _is_stdout(getattr(args, k, None))]
+    if len(to_stdout) > 1:
+        both = " and --".join(to_stdout)
+        print(f"smabench {args.command}: error: only one output can be standard output, got "
+              f"--{both}", file=sys.stderr)  # fmt: skip
+        return EXIT_USAGE
     try:
+        if to_stdout:  # the data go to stdout; what the command prints goes to stderr
+            from smabench.sessions import data_to_stdout
+
+            with data_to_stdout():
+                return int(args.func(args) or 0)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("smabench: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader of our stdout went away (`| head`): as cat does
+        with contextlib.suppress(OSError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141
     except USER_ERRORS as exc:
         if args.verbose:
             raise
-        msg = str(exc) or exc.__class__.__name__
+        msg = one_line(str(exc) or exc.__class__.__name__)
         print(f"smabench {args.command}: error: {msg}", file=sys.stderr)
         return EXIT_USAGE
     except device_errors() as exc:  # a port that cannot be opened, a device that does not answer
@@ -529,6 +565,22 @@ def _console_record(record: logging.LogRecord) -> bool:
     if name.startswith("smabench.drivers"):
         return record.levelno >= logging.ERROR
     return name == "smabench" or name.startswith("smabench.")
+
+
+OUTPUT_OPTIONS = ("out", "json", "csv", "plot", "predictions")
+"""The destinations of option values that may be ``-`` (standard output)."""
+
+
+def _is_stdout(path: object) -> bool:
+    from smabench.sessions import is_stdout
+
+    return isinstance(path, str) and is_stdout(path)
+
+
+def one_line(text: str) -> str:
+    """``text`` with its control characters escaped (a file's bytes quoted in an error message
+    must not break the one line on stderr)."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 def device_errors() -> tuple[type[BaseException], ...]:

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from smabench.argtypes import OUTPUT_HELP, output_file
+
 log = logging.getLogger(__name__)
 
 
@@ -176,12 +178,15 @@ def add_commands(sub) -> None:
                       help="fit on the first 1 − FRACTION of the samples (in time), report the "
                            "error on the rest (0.05 … 0.8)")  # fmt: skip
     held.add_argument("--test", metavar="SESSION", help="also report the error on this session")
-    s.add_argument("--json", help="write the errors, parameters and the fitted model here")
-    s.add_argument("--plot", help="write a PNG overlaying measured and model loops here")
+    s.add_argument("--json", type=output_file,
+                   help="write the errors, parameters and the fitted model here" + OUTPUT_HELP)
+    s.add_argument("--plot", type=output_file,
+                   help="write a PNG overlaying measured and model loops here" + OUTPUT_HELP)
     s.set_defaults(func=cmd_fit)
 
     s = sub.add_parser("predict", help="apply a fitted model (fit --json) to another session")
     s.add_argument("session", help="session folder or CSV")
     s.add_argument("--model", required=True, metavar="FITTED.json", help="from fit --json")
-    s.add_argument("--out", required=True, metavar="CSV", help="t_s, position_mm, model_mm")
+    s.add_argument("--out", required=True, metavar="CSV", type=output_file,
+                   help="t_s, position_mm, model_mm" + OUTPUT_HELP)
     s.set_defaults(func=cmd_predict)

@@ -175,7 +175,7 @@ def test_every_command_has_help(cli_in_process):
 def test_a_port_that_cannot_be_opened_is_one_line(run_cli, tmp_path):
     proc = run_cli("run", "--port", tmp_path / "no-such-port", "--sensor", "tcp:127.0.0.1:1",
                    "--load-kg", "1", "--out", tmp_path)  # fmt: skip
-    _assert_clean_failure(proc, "device error", "no-such-port")
+    _assert_clean_failure(proc, "no such port", "no-such-port")  # before any device opens
 
 
 @pytest.mark.parametrize(

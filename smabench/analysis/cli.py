@@ -12,15 +12,17 @@ import time
 from collections.abc import Sequence
 
 from smabench.analysis.data import AnalysisError
-from smabench.argtypes import positive
+from smabench.argtypes import OUTPUT_HELP, output_file, positive
 from smabench.tasks import add_scheduler_timeout
 
 
 def add_arguments(s: argparse.ArgumentParser) -> None:
     s.add_argument("sessions", nargs="+", metavar="SESSION", help="session folders or CSVs")
-    s.add_argument("--json", metavar="OUT", help="write the verdict, RMSEs and parameters here")
+    s.add_argument("--json", metavar="OUT", type=output_file,
+                   help="write the verdict, RMSEs and parameters here" + OUTPUT_HELP)
     s.add_argument("--report", metavar="DIR", help="write report.md and PNG plots here")
-    s.add_argument("--predictions", metavar="OUT.csv", help="write measured/baseline/extended")
+    s.add_argument("--predictions", metavar="OUT.csv", type=output_file,
+                   help="write measured/baseline/extended" + OUTPUT_HELP)
     s.add_argument("--load-kg", type=positive(), help="hanging load, kg (overrides session.json)")
     s.add_argument("--wire-length-mm", type=positive(), help="wire length, mm (overrides)")
     s.add_argument("--wire-diameter-mm", type=positive(), help="wire diameter, mm (overrides)")
@@ -57,7 +59,8 @@ def add_commands(sub) -> None:
     s = sub.add_parser(
         "analyze",
         help="find where the simulation is wrong and name the physical cause",
-        description=__doc__,
+        description="Find where the simulation is wrong on recorded sessions, and name the "
+        "physical cause.",
     )
     add_arguments(s)
     s.set_defaults(func=cmd_analyze)

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from smabench.argtypes import OUTPUT_HELP, output_file
 from smabench.control.reference import BENCHMARK_REFERENCES
 
 if TYPE_CHECKING:
@@ -233,6 +234,8 @@ def bench_control(
 ) -> list[dict]:  # fmt: skip
     """Run the cases (``jobs`` at a time, each with its own mock, or offline at
     ``offline_period_s``); rows in case order."""
+    from smabench.sessions import atomic_write, writes_in_place
+
     rows: list[dict] = []
     with ProcessPoolExecutor(max_workers=jobs) as pool:
         args = [(c, speed, rate_hz, offline_period_s) for c in cases]
@@ -244,11 +247,11 @@ def bench_control(
             else:
                 print(f"  {row['ref']:10s} {row['load_kg']:g} kg {row['effect'] or 'nominal':18s} "
                       f"{row['controller']:6s} RMS {row['rms_mm']:.3f} mm", flush=True)  # fmt: skip
-            if progress is not None:
-                progress.write_text(json.dumps(rows, indent=1))
-            if table_out is not None:  # partial results survive an interruption
-                done = [r for r in rows if "error" not in r]
-                table_out.write_text(format_table(done) + "\n", encoding="utf-8")
+            if progress is not None and not writes_in_place(progress):
+                atomic_write(progress, json.dumps(rows, indent=1))
+            if table_out is not None and not writes_in_place(table_out):  # partial results
+                done = [r for r in rows if "error" not in r]  # survive an interruption
+                atomic_write(table_out, format_table(done) + "\n")
     return rows
 
 
@@ -266,6 +269,8 @@ def cmd_bench_control(args: argparse.Namespace) -> int:
             args.speed / args.rate_hz]
         if not all(0.0005 <= p <= 1.0 for p in periods):
             raise ValueError("offline loop periods must be in 0.5 … 1000 ms")
+    from smabench.sessions import atomic_write, writes_in_place
+
     ok = True
     tables = []
     for period in periods:
@@ -282,8 +287,10 @@ def cmd_bench_control(args: argparse.Namespace) -> int:
         print(table)
         tables.append(table)
         ok = ok and len(good) == len(rows)
+        if args.json and writes_in_place(args.json):  # a stream gets the rows once, at the end
+            atomic_write(args.json, json.dumps(rows, indent=1))
     if args.out:
-        Path(args.out).write_text("\n\n".join(tables) + "\n", encoding="utf-8")
+        atomic_write(args.out, "\n\n".join(tables) + "\n")
     return 0 if ok else 1
 
 
@@ -306,8 +313,10 @@ def add_bench_control(bsub) -> None:
         "--periods-ms", type=float, nargs="+",
         help="--offline: loop periods, ms of device time (default speed / rate, 12.5)",
     )  # fmt: skip
-    b.add_argument("--out", help="also write the table to this file")
-    b.add_argument("--json", help="write the rows as JSON (updated after every case)")
+    b.add_argument("--out", type=output_file,
+                   help="also write the table to this file" + OUTPUT_HELP)
+    b.add_argument("--json", type=output_file,
+                   help="write the rows as JSON (updated after every case)" + OUTPUT_HELP)
     b.set_defaults(func=cmd_bench_control)
 
 

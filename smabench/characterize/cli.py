@@ -15,6 +15,7 @@ from typing import IO, Any
 
 import numpy as np
 
+from smabench.argtypes import OUTPUT_HELP, output_file
 from smabench.characterize.e3097 import TEMPERATURE_KEYS
 from smabench.characterize.run import Overrides, characterize_many, strip_private
 from smabench.sessions import atomic_write, atomic_write_json
@@ -136,8 +137,10 @@ def add_commands(sub) -> None:
         "each (exit 2 when nothing is left).",
     )
     s.add_argument("sessions", nargs="+", help="session folders or CSVs")
-    s.add_argument("--json", required=True, help="write the results here (JSON)")
-    s.add_argument("--csv", help="also write one row per cycle here")
+    s.add_argument("--json", required=True, type=output_file,
+                   help="write the results here (JSON)" + OUTPUT_HELP)
+    s.add_argument("--csv", type=output_file,
+                   help="also write one row per cycle here" + OUTPUT_HELP)
     s.add_argument("--report", help="folder for the report PNGs")
     s.add_argument("--wire-length-mm", type=float, help="wire length when a session lacks it")
     s.add_argument("--wire-diameter-mm", type=float, help="wire diameter when a session lacks it")

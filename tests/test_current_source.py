@@ -31,8 +31,9 @@ from smabench.drivers.current_source import (
 from smabench.drivers.mock.bench import DEVICE_RT_PRIORITY
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.drivers.mock.serial_device import SerialDevice
+from smabench.hardware import ELECTRICAL
 
-OFF_A = 0.002  # the firmware reads ADC code 0 as half a count: 1 mA with the output off
+OFF_A = ELECTRICAL.current_adc_a_per_count  # the firmware reads ADC code 0 as half a count
 
 F = p.Flag
 

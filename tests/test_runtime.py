@@ -501,7 +501,7 @@ def events_session(tmp_path, command, at, **cfg):
 
 def test_an_estopped_session_records_until_the_current_is_off_and_logs_the_chain(tmp_path):
     result, rows, bench, events = events_session(
-        tmp_path, Constant(1.4), {300: lambda rt, b: rt.estop(123.25, "key Esc")}
+        tmp_path, Constant(1.4), {300: lambda rt, b: rt.estop(b.clock.now() - 0.004, "key Esc")}
     )
     assert result.status == "aborted" and result.reason == "e-stop"
     after = [r for r in rows if int(r["flags"]) & FLAG_AFTER_END]
@@ -514,7 +514,9 @@ def test_an_estopped_session_records_until_the_current_is_off_and_logs_the_chain
         "current_below_threshold",
     ]  # fmt: skip
     first = events[0]
-    assert first["t_host_s"] == 123.25 and first["source"] == "key Esc"
+    assert first["source"] == "key Esc"
+    times = [e["t_host_s"] for e in events]  # one clock: the runtime's (simulated here)
+    assert times == sorted(times) and times[-1] - times[0] < 0.1, times
     assert first["from_input_event"] is True
     assert events[1]["command"] == "ENABLE 0" and events[1]["why"] == "e-stop"
     assert events[2]["reason"] == "e-stop"
@@ -530,9 +532,9 @@ def test_a_lost_driver_is_recorded_as_not_confirmed_with_the_reason(tmp_path):
     names = [e["event"] for e in events]
     assert names[-1] == "output_off_not_confirmed", names
     assert "device is lost" in events[-1]["reason"]
-    assert events[-1]["waited_s"] == pytest.approx(1.0, abs=0.02)
+    assert events[-1]["waited_s"] < 0.02  # already lost at the end: said at once, no wait
     after = [r for r in rows if int(r["flags"]) & FLAG_AFTER_END]
-    assert len(after) == pytest.approx(200, abs=3)  # 1 s at 200 Hz, recorded as it was
+    assert 1 <= len(after) <= 4
 
 
 def test_a_completed_session_ends_without_after_end_rows(tmp_path):

@@ -194,9 +194,10 @@ class MockProcess:
         from smabench.drivers.mock.bench import die_with_parent
 
         timeout_s = ready_timeout_s() if timeout_s is None else timeout_s
-        # it also ends on stdin EOF, i.e. when this process dies, whatever the signal
+        # it also ends on stdin EOF, i.e. when this process dies, whatever the signal; -P: the
+        # installed smabench, never a smabench/ folder in the working directory (a checkout)
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "smabench.cli", "mock", "--control-stdin", *mock_args],
+            [sys.executable, "-P", "-m", "smabench.cli", "mock", "--control-stdin", *mock_args],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             text=True,

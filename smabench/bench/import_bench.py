@@ -63,7 +63,7 @@ def cmd_bench_import(args: argparse.Namespace) -> int:
         print(f"bench import: {size_mb:.0f} MB, {rows / 1e6:.2f} M rows …", flush=True)
         t0 = time.perf_counter()
         proc = subprocess.run(
-            [sys.executable, "-m", "smabench.cli", "import", str(src), "--columns",
+            [sys.executable, "-P", "-m", "smabench.cli", "import", str(src), "--columns",
              "t_s,temperature_C,strain", "--wire-length-mm", "100", "--out", str(Path(tmp) / "s")],
             stdout=subprocess.PIPE, text=True,
         )  # fmt: skip

@@ -27,6 +27,7 @@ from smabench.commands import CommandSource
 from smabench.drivers.sim import SimBench
 from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE, Wire
+from smabench.sessions import FLAG_AFTER_END
 
 log = logging.getLogger(__name__)
 
@@ -84,6 +85,8 @@ def run_closed_loop(
     true_c: list[float] = []
 
     def record(row: dict) -> None:
+        if int(row["flags"] or 0) & FLAG_AFTER_END:  # the proof that the output went off,
+            return  # after the session's end: not part of the closed loop's trace
         rows.append(row)
         true_c.append(bench.plant.state.temperature_c)
 

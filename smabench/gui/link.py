@@ -172,7 +172,7 @@ class RuntimeLink:
 
     def __init__(self, devices: dict[str, Any]) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "smabench.bench.remote", json.dumps(devices)],
+            [sys.executable, "-P", "-m", "smabench.bench.remote", json.dumps(devices)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

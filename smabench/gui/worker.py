@@ -133,7 +133,7 @@ class ComputeWorker:
         self.ready.clear()
         self.current = None
         # started from the calling (GUI) thread: only the child lowers its priority
-        proc = subprocess.Popen([sys.executable, "-c", _BOOT], stdin=subprocess.PIPE,
+        proc = subprocess.Popen([sys.executable, "-P", "-c", _BOOT], stdin=subprocess.PIPE,
                                 stdout=subprocess.PIPE, close_fds=True)  # fmt: skip
         self._proc = proc
         threading.Thread(target=self._read, args=(proc,), name="compute-reader",

@@ -39,6 +39,7 @@ def test_every_block_is_found_and_well_formed():
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # the block's own limit (doc-run: timeout) is the subprocess's
 @pytest.mark.parametrize("block", BLOCKS, ids=[b.name for b in BLOCKS])
 def test_doc_block_runs(installed: Installed, tmp_path: Path, block: Block) -> None:
     if block.skip:

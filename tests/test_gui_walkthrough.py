@@ -426,7 +426,7 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
     assert any("cycle 1 of 2" in t and "remaining –" not in t for t in shown_times)
     assert end["folder"] in win.message.text()  # the end message names the saved folder
     # cycles counted the same way: the run showed "cycle k of 2"; the record has 2 cycles
-    from smabench.sessions import load_session
+    from smabench.sessions import FLAG_AFTER_END, load_session
 
     recorded = load_session(end["folder"])
     assert shown_cycles(recorded.data["cycle"]) == 2
@@ -525,7 +525,8 @@ def test_operator_walkthrough(qtbot, win, tmp_path):
         from smabench.control import gains_for_load
 
         assert ctl["gains"]["kp"] == pytest.approx(gains_for_load(2.0).kp)
-    ol = s.data["mode"] == "open_loop"
+    live = (s.data["flags"].astype(int) & FLAG_AFTER_END) == 0  # not the rows after the stop
+    ol = (s.data["mode"] == "open_loop") & live
     held = s.data["current_set_A"][ol]
     # the operator's 0.5 A within half a second of the switch (one status period at most)
     t_ol = s.data["t_s"][ol]

@@ -614,16 +614,10 @@ def confirm_after_trip(entry: dict[str, Any], yes: bool) -> bool:
 
 
 def _device_args(s: argparse.ArgumentParser) -> None:
-    s.add_argument("--mock", action="store_true", help="run each step on the mock bench")
     from smabench import argtypes
+    from smabench.bench.headless import add_device_options
 
-    s.add_argument("--port", type=argtypes.serial_port, metavar="DEV",
-                   help="current driver serial port")
-    s.add_argument("--sensor", type=argtypes.sensor_spec, metavar="SPEC",
-                   help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
-    s.add_argument("--sensor-map", type=argtypes.sensor_map, default="generic-rs485-laser",
-                   metavar="MAP",
-                   help="sensor register map: a shipped name or a map file")
+    add_device_options(s, "run each step on the mock bench", argtypes.serial_port)
     s.add_argument("--assume-loaded", action="store_true",
                    help="do not stop for load changes (the operator is not needed)")  # fmt: skip
     s.add_argument("--prompt", choices=("auto", "gui", "terminal"), default="auto",

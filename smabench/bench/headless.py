@@ -508,6 +508,20 @@ def _interrupt(*_: object) -> None:
     raise KeyboardInterrupt
 
 
+def add_device_options(parser, mock_help: str, port_type) -> None:
+    """``--mock``, ``--port``, ``--sensor``, ``--sensor-map``: the devices of a run or a plan,
+    declared once. ``port_type``: the port's check (``run`` checks its existence after the
+    settings, so that a setting's error is named first)."""
+    parser.add_argument("--mock", action="store_true", help=mock_help)
+    parser.add_argument("--port", type=port_type, metavar="DEV",
+                        help="current driver serial port, e.g. /dev/ttyUSB0")
+    parser.add_argument("--sensor", type=argtypes.sensor_spec, metavar="SPEC",
+                        help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
+    parser.add_argument("--sensor-map", type=argtypes.sensor_map,
+                        default="generic-rs485-laser", metavar="MAP",
+                        help="register map: a shipped name or a map file")
+
+
 def add_commands(sub) -> None:
     """Register ``mock`` and ``run`` on the CLI's subparsers."""
     s = sub.add_parser("mock", help="serve the mock bench over real transports, print its ports")
@@ -539,14 +553,7 @@ def add_commands(sub) -> None:
 
     s = sub.add_parser("run", help="run a recorded session (headless) on the bench or the mock")
     where = s.add_argument_group("devices")
-    where.add_argument("--mock", action="store_true", help="start and use the mock bench")
-    where.add_argument("--port", type=argtypes.port_syntax, metavar="DEV",
-                       help="current driver serial port, e.g. /dev/ttyUSB0")
-    where.add_argument("--sensor", type=argtypes.sensor_spec, metavar="SPEC",
-                       help="displacement sensor: tcp:HOST:PORT or rtu:DEV[:BAUD]")
-    where.add_argument("--sensor-map", type=argtypes.sensor_map, default="generic-rs485-laser",
-                       metavar="MAP",
-                       help="register map: a shipped name or a map file")
+    add_device_options(where, "start and use the mock bench", argtypes.port_syntax)
     where.add_argument(
         "--sensor-timeout-s",
         type=settings_schema.arg_type("sensor_timeout_s"),

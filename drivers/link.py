@@ -558,12 +558,15 @@ class FramedLink:
             self._keepalive_seqs[seq] = now
             with self._lock:
                 self._n["keepalives"] += 1
-        if self._ready and not self._lost and now - self._last_rx > self.link_timeout_s:
+        data = b""
+        waiting = self._ser.in_waiting
+        # bytes already waiting: the device spoke and this thread was held up (a busy host),
+        # not a silent link
+        if (self._ready and not self._lost and not waiting
+                and now - self._last_rx > self.link_timeout_s):
             with self._lock:
                 self._lost = True
             log.warning("link lost: nothing received for %.0f ms", 1e3 * (now - self._last_rx))
-        data = b""
-        waiting = self._ser.in_waiting
         if waiting:
             data = self._ser.read(waiting)
         else:

@@ -1,9 +1,10 @@
 """Experiment protocols: online state machines that turn time and position into a current command.
 
 The paper's three excitations plus steps and ramps:
-- ``complete``: heat at ``current_a`` for ``heat_s``, then cool with no current until the position
-  has settled (mean drift below ``settle_mm`` across ``settle_window_s``) or after
-  ``cool_timeout_s``.
+- ``complete``: heat at ``current_a`` for ``heat_s``, then cool with no current until the wire
+  has stretched back (by :data:`RECOVERED_FRACTION` of the heating's stroke: it holds still and
+  contracted while it cools to Ms, which must not count as settled) and its position has settled
+  (mean drift below ``settle_mm`` across ``settle_window_s``), or after ``cool_timeout_s``.
 - ``incomplete``: as complete, but reheat after ``partial_cool_s`` (before the wire has cooled), so
   the first common point moves to the reversal point.
 - ``inner``: short heat/cool pulses (``inner_heat_s``/``inner_cool_s``) inside the transformation,
@@ -42,6 +43,10 @@ log = logging.getLogger(__name__)
 __all__ = ["OPEN_LOOP_NAMES", "PROTOCOL_NAMES", "REFERENCE_NAMES", "Protocol", "ProtocolSettings"]
 
 _P = "protocol."
+
+RECOVERED_FRACTION = 0.5
+"""Part of the heating's stroke (position at the heat's start − at its end) the wire must have
+stretched back before a complete cycle's cooling may settle."""
 
 
 @dataclass
@@ -120,6 +125,8 @@ class Protocol:
         self.phase_t0_s: float | None = None
         self.settle = _Settle(settings.settle_window_s, settings.settle_mm)
         self.finished = False
+        self._heat_start_mm = self._hot_mm = math.nan  # the current cycle's stroke, mm
+        self._recovered = False  # the wire stretched back in this cooling
 
     @property
     def progress(self) -> float:
@@ -130,6 +137,24 @@ class Protocol:
     def _enter(self, phase: str, t_s: float) -> None:
         self.phase, self.phase_t0_s = phase, t_s
         self.settle.reset()
+        if phase == "heat":
+            self._heat_start_mm = self._hot_mm = math.nan
+            self._recovered = False
+
+    def _track(self, position_mm: float) -> bool:
+        """Follow the stroke (heat: its start and end positions); in cooling, whether the wire
+        has stretched back by RECOVERED_FRACTION of it (once, then for the rest of the phase)."""
+        if not math.isfinite(position_mm):
+            return self._recovered
+        if self.phase == "heat":
+            if math.isnan(self._heat_start_mm):
+                self._heat_start_mm = position_mm
+            self._hot_mm = position_mm
+            return False
+        stroke = abs(self._heat_start_mm - self._hot_mm)
+        if math.isnan(stroke) or abs(position_mm - self._hot_mm) >= RECOVERED_FRACTION * stroke:
+            self._recovered = True
+        return self._recovered
 
     def update(self, t_s: float, position_mm: float) -> CommandStep:
         if self.phase_t0_s is None:
@@ -158,6 +183,7 @@ class Protocol:
         heat_s = s.heat_s
         if name == "inner" and self.cycle > 0:
             heat_s = s.inner_heat_s
+        recovered = self._track(position_mm)
         if self.phase == "heat":
             if dt >= heat_s:
                 self._enter("cool", t_s)
@@ -170,7 +196,7 @@ class Protocol:
         elif name == "inner" and self.cycle < s.cycles - 1:
             end = dt >= s.inner_cool_s
         else:
-            end = (dt >= s.min_cool_s and settled) or dt >= s.cool_timeout_s
+            end = (dt >= s.min_cool_s and settled and recovered) or dt >= s.cool_timeout_s
         if end:
             self.cycle += 1
             if self.cycle >= s.cycles:

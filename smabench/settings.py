@@ -426,7 +426,8 @@ _TABLE: list[Setting] = [
     _protocol("min_cool_s", "min cool time", "Shortest cooling time before settling counts.",
               unit="s", default=3.0, min=0.0, max=3600.0, protocols=_HEAT),
     _protocol("settle_mm", "settle tolerance",
-              "Cooling ends once the position drifts less than this across the settle window.",
+              "Cooling ends once the wire has stretched back (half the heating's stroke) and its "
+              "position drifts less than this across the settle window.",
               unit="mm", default=0.005, min=0.0, min_open=True, max=10.0, protocols=_HEAT,
               decimals=4, step=0.001),
     _protocol("settle_window_s", "settle window", "Window over which settling is judged.",

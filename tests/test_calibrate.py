@@ -167,8 +167,12 @@ def _held(port: str, currents, truth) -> list[tuple[float, float]]:
     setpoint renewed meanwhile (:class:`~smabench.calibrate.HeldCurrent`)."""
     out = []
     # (a host timeout of 1 s: this measures readings, and a busy machine can hold the driver's
-    # keepalive thread past the default 0.25 s)
-    with CurrentSource(port, lease_s=cal.LEASE_S, host_timeout_s=1.0) as cs:
+    # keepalive thread past the default 0.25 s; the link's owner thread runs at the priority
+    # calibrate gives it, or a busy machine holds the lease's renewals past LEASE_S)
+    from smabench.bench.priority import LINK_RT_PRIORITY
+
+    with CurrentSource(port, lease_s=cal.LEASE_S, host_timeout_s=1.0,
+                       owner_priority=LINK_RT_PRIORITY) as cs:  # fmt: skip
         for i in currents:
             with cal.HeldCurrent(cs, i, settle_s=0.2) as held:
                 assert held.wait_span(0.1, timeout_s=10.0), held.measurement()

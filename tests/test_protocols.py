@@ -62,6 +62,34 @@ def test_cooling_times_out_when_position_keeps_moving():
     assert 1.0 + 5.0 < t_end < 1.0 + 6.5
 
 
+def wire(t_off_s: float, plateau_s: float, cold_mm: float = 2.6, hot_mm: float = 0.1):
+    """A wire's position: contracts while heated from t = 0 to ``t_off_s`` (τ 0.2 s), then holds
+    at ``hot_mm`` for ``plateau_s`` as it cools down to Ms, then stretches back (τ 0.5 s)."""
+
+    def position(t: float) -> float:
+        if t < t_off_s:
+            return hot_mm + (cold_mm - hot_mm) * math.exp(-t / 0.2)
+        back = t - t_off_s - plateau_s
+        return hot_mm if back < 0 else cold_mm - (cold_mm - hot_mm) * math.exp(-back / 0.5)
+
+    return position
+
+
+def test_cooling_waits_for_the_wire_to_stretch_back_not_the_hot_plateau():
+    """After the current stops the wire stays contracted, still and still hot, until it has
+    cooled to Ms: settling there would reheat before the reverse transformation (a partial
+    cycle in a session called complete). Cooling ends once the wire has stretched back and
+    settled; the sample mock sessions show a 3 s plateau (1.4 A, 3 s, 1 kg)."""
+    s = ProtocolSettings(name="cycles", cycles=1, heat_s=3.0, min_cool_s=3.0,
+                         cool_timeout_s=30.0)  # fmt: skip
+    _, _, _, t_end = run(s, position=wire(3.0, plateau_s=4.0))
+    # stretched back from 7 s on; within 5 µm of its mean drift about 3.5 s later
+    assert 3.0 + 4.0 + 2.0 < t_end < 3.0 + 4.0 + 5.0, t_end
+    # a wire that never contracted (no stroke to recover) still settles after min_cool_s
+    _, _, _, t_end = run(s, position=lambda t: 1.0)
+    assert t_end == pytest.approx(3.0 + 3.0, abs=0.1)
+
+
 def test_incomplete_reheats_early_and_inner_uses_short_pulses():
     s = ProtocolSettings(
         name="incomplete", cycles=3, heat_s=2.0, partial_cool_s=1.5, min_cool_s=1.0

@@ -135,6 +135,7 @@ class Request:
     error: BaseException | None = None
     cancelled: bool = False
     round_trip_s: float = 0.0
+    urgent: bool = False  # the safe state: no other urgent command gives it up
 
     def finish(self, ack: p.Ack | None = None, error: BaseException | None = None) -> None:
         if self.done.is_set():
@@ -374,8 +375,11 @@ class FramedLink:
         urgent: bool = False,
     ) -> Request:
         """Queue a command; returns at once. ``urgent`` (the safe state): before everything
-        queued, and the command in flight is given up (it fails with :class:`LinkError`)."""
+        queued, and the command in flight is given up (it fails with :class:`LinkError`) unless
+        it is urgent too (two make_safe calls at once, an e-stop's and the session end's: the
+        first one's ACK must not be lost to the second)."""
         req = self._new_request(type_, payload, ack_timeout_s, retries)
+        req.urgent = urgent
         with self._lock:
             if urgent:
                 self._queue.appendleft(req)
@@ -537,7 +541,7 @@ class FramedLink:
         cur = self._current
         with self._lock:
             preempt, self._preempt = self._preempt, False
-        if cur is not None and preempt:
+        if cur is not None and preempt and not cur.urgent:
             cur.finish(error=LinkError(f"{type_name(cur.type)}: preempted by an urgent command"))
             cur = self._current = None
         if cur is not None and cur.cancelled:

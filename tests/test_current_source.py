@@ -446,6 +446,12 @@ class FakeSerial:
                 self._cond.notify_all()
         return len(data)
 
+    def answer_last(self) -> None:
+        """The device answers the last frame written (one that went unanswered)."""
+        with self._cond:
+            self._in += self.fw.receive(self.frames[-1], 0.0)
+            self._cond.notify_all()
+
     @property
     def in_waiting(self) -> int:
         return len(self._in)
@@ -660,6 +666,32 @@ def test_make_safe_goes_ahead_of_queued_setpoints():
     i08 = [x.payload for x in sent].index(p.set_current(0.8)[1])
     # after the unanswered 0.8 A: ENABLE 0 at once (no retry of the 0.8 A), the 0.9 A dropped
     assert [(x.type, x.payload) for x in sent[i08 + 1 :]] == [(p.MsgType.ENABLE, b"\x00")]
+    assert not fake.fw.enabled
+    cs.close()
+
+
+def test_two_make_safe_at_once_are_both_confirmed():
+    """An e-stop's make_safe (the runtime's reader thread) and the session end's (its loop) at
+    the same moment: the second waits for the first's ACK rather than giving it up, so the
+    e-stop's command is recorded as confirmed (it was answered)."""
+    fake = FakeSerial()
+    cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0)
+    cs.connect()
+    cs.set_current(1.0, wait=True)
+    cs.enable(True)
+    fake.respond = False  # the first ENABLE 0 goes out and waits for its ACK
+    results: list[bool] = []
+    first = threading.Thread(target=lambda: results.append(cs.make_safe(timeout_s=2.0)))
+    first.start()
+    wait_until(lambda: p.decode_frame(fake.frames[-1]).type == p.MsgType.ENABLE, 10.0, "sent")
+    second = threading.Thread(target=lambda: results.append(cs.make_safe(timeout_s=2.0)))
+    second.start()
+    wait_until(lambda: cs._link._preempt is False, 10.0, "the owner saw the second")
+    fake.respond = True
+    fake.answer_last()
+    first.join(5.0)
+    second.join(5.0)
+    assert results == [True, True]
     assert not fake.fw.enabled
     cs.close()
 

@@ -115,7 +115,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self._refused_for_fields = False
         for f in self.fields.values():
             f.changed.connect(self._fields_edited)
-        self.guard = EStopGuard(self.estop, self, button=self.estop_button)
+        self.guard = EStopGuard(self.estop, self, button=self.estop_button,
+                                send_now=self._send_estop)
         self.timer = QtCore.QTimer(self)
         self.timer.timeout.connect(self.on_frame)
         self.timer.start(FRAME_MS)
@@ -445,12 +446,19 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self.link.send("stop")
             self.say("Stopping …")
 
-    def estop(self, input_t: float | None = None, source: str = "") -> None:
+    def _send_estop(self, input_t: float | None, source: str) -> bool:
+        """The e-stop down the runtime's pipe (any thread: one write); whether it went."""
+        link = self.link
+        return link.estop(input_t, source) if link is not None else False
+
+    def estop(self, input_t: float | None = None, source: str = "",
+              sent: bool | None = None) -> None:  # fmt: skip
         """E-STOP: the runtime first (output off, session aborted), then the display.
 
         ``input_t``: the key press's or click's own time (``time.monotonic()``, s) when known,
         ``source`` what it was; the runtime logs both in the session's ``events.jsonl`` and the
-        banner's figure is measured from it."""
+        banner's figure is measured from it. ``sent``: the e-stop already went down the pipe
+        (the keys' fast path, :mod:`smabench.gui.xkeys`) and whether it did."""
         if not source:  # the button's pressed signal: the click's time from the guard
             source = "button"
             press = self.guard.press_t if getattr(self, "guard", None) is not None else None
@@ -458,7 +466,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                 input_t = press[0]
         self.estop_time = time.monotonic() if input_t is None else input_t
         link = self.link
-        sent = link.estop(input_t, source) if link is not None else False
+        if sent is None:
+            sent = self._send_estop(input_t, source)
         self.last_estop = None
         was_lost = self.state == State.ERROR and self.readouts.why == "device lost"
         self._close_dialogs()

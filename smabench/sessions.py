@@ -117,6 +117,8 @@ CYCLES_FILE = "cycles.csv"
 EVENTS_FILE = "events.jsonl"  # the safety chain's events, one JSON object a line (EventLog)
 WRITE_BLOCK_ROWS = 65_536
 """Rows formatted and written at once by :meth:`SessionWriter.append_arrays` (≈ 10 MB of text)."""
+PROGRESS_S = 1.0
+"""Seconds between two progress reports of a large write (:func:`write_session`)."""
 CHUNK_ROWS = 1_000_000
 """Rows per samples chunk file before the writer rotates (≈ 80 MB, 83 min at 200 Hz)."""
 _CHUNK_RE = re.compile(r"^samples-(\d{5})\.csv$")
@@ -916,9 +918,14 @@ class SessionWriter:
             with self._lock, contextlib.suppress(OSError, ValueError):  # closed: close() syncs
                 os.fsync(self._fh.fileno())
 
-    def append_arrays(self, data: Mapping[str, Sequence[Any] | np.ndarray]) -> None:
-        """Append many rows given as equally long columns (cycles and chunks as :meth:`append`)."""
+    def append_arrays(
+        self, data: Mapping[str, Sequence[Any] | np.ndarray],
+        progress: Callable[[int, int], None] | None = None,
+    ) -> None:  # fmt: skip
+        """Append many rows given as equally long columns (cycles and chunks as :meth:`append`);
+        ``progress(rows_done, rows)`` is called about every :data:`PROGRESS_S` seconds."""
         n = len(next(iter(data.values())))
+        last_progress_s = time.monotonic()
         cols = [data.get(c) for c in self.columns]
         cycle = data.get("cycle") if self._summary is not None else None
         if cycle is not None:
@@ -956,6 +963,9 @@ class SessionWriter:
                 self.rows_written += j - i
                 i = j
                 self._write_rows(block)
+                if progress is not None and time.monotonic() - last_progress_s >= PROGRESS_S:
+                    progress(i, n)
+                    last_progress_s = time.monotonic()
         self.flush()
 
     def flush(self) -> None:
@@ -1020,11 +1030,12 @@ def write_session(
     meta: Mapping[str, Any],
     data: Mapping[str, Sequence[Any] | np.ndarray],
     columns: Sequence[str] | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Write a complete session into ``folder`` (must not exist) all-or-nothing.
 
     ``columns`` defaults to the contract columns followed by any extra columns present in
-    ``data``.
+    ``data``; ``progress(rows_done, rows)``: see :meth:`SessionWriter.append_arrays`.
     """
     folder = Path(folder)
     if folder.exists():
@@ -1035,7 +1046,7 @@ def write_session(
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}."))
     try:
         w = SessionWriter(tmp / "s", meta, columns=columns)
-        w.append_arrays(data)
+        w.append_arrays(data, progress)
         w.close(status=str(meta.get("status", "completed")), reason=str(meta.get("end_reason", "")))
         os.replace(tmp / "s", folder)
     finally:

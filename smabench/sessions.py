@@ -258,6 +258,7 @@ def _arrow_column(col: Any, i: int, j: int, integer: bool) -> Any:
 _FORMAT_PART_ROWS = 16_384
 """Rows from which :func:`format_block` formats the parts of a block on parallel threads."""
 _format_pool: list[Any] = []
+"""[pid, ThreadPoolExecutor] of :func:`format_block` (a forked child makes its own)."""
 
 
 def format_block(cols: Sequence[Any], columns: Sequence[str], i: int, j: int) -> bytes:
@@ -268,12 +269,13 @@ def format_block(cols: Sequence[Any], columns: Sequence[str], i: int, j: int) ->
     workers = min(os.cpu_count() or 1, (j - i) // _FORMAT_PART_ROWS)
     if workers < 2:
         return _format_part(cols, columns, i, j)
-    if not _format_pool:
+    if not _format_pool or _format_pool[0] != os.getpid():  # none yet, or a forked child's
         from concurrent.futures import ThreadPoolExecutor
 
-        _format_pool.append(ThreadPoolExecutor(os.cpu_count(), thread_name_prefix="format"))
+        pool = ThreadPoolExecutor(os.cpu_count(), thread_name_prefix="session-format")
+        _format_pool[:] = [os.getpid(), pool]
     cuts = np.linspace(i, j, workers + 1).astype(int).tolist()
-    parts = _format_pool[0].map(lambda a, b: _format_part(cols, columns, a, b),
+    parts = _format_pool[1].map(lambda a, b: _format_part(cols, columns, a, b),
                                 cuts[:-1], cuts[1:])  # fmt: skip
     return b"".join(parts)
 

@@ -463,7 +463,7 @@ def parse_map(data: dict[str, Any], *, source: str = "<memory>",
     import jsonschema
 
     def fail(where: str, msg: str) -> SensorMapError:
-        return SensorMapError(f"{source}: {where}: {msg}")
+        return SensorMapError(f"{source}: {_printable(where)}: {_printable(msg)}")
 
     if not isinstance(data, dict):
         raise SensorMapError(f"{source}: expected a TOML table")
@@ -515,6 +515,12 @@ def parse_map(data: dict[str, Any], *, source: str = "<memory>",
         checks=tuple(RegisterCheck(c["address"], c.get("function", 3), c["expect"],
                                    c["description"]) for c in data.get("check", ())),
     )
+
+
+def _printable(text: str) -> str:
+    """``text`` on one line: a control character from the file (a key ``"a\nb"``) escaped."""
+    return "".join(c if c.isprintable() else c.encode("unicode_escape").decode("ascii")
+                   for c in text)  # fmt: skip
 
 
 def _first_non_finite(node: Any, path: list) -> tuple[list, float] | None:

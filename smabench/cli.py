@@ -76,6 +76,7 @@ def cmd_import(args: argparse.Namespace) -> int:
         wire_diameter_mm=args.wire_diameter_mm,
         decimal=args.decimal,
         progress=_import_progress,
+        write_progress=_import_write_progress,
     )
     from smabench.sessions import META_FILE
 
@@ -90,6 +91,11 @@ def cmd_import(args: argparse.Namespace) -> int:
 
 def _import_progress(rows: int, bytes_read: int, bytes_total: int) -> None:
     print(f"import: {rows / 1e6:.2f} M rows, {bytes_read / 1e6:.0f} of {bytes_total / 1e6:.0f} MB",
+          file=sys.stderr, flush=True)  # fmt: skip
+
+
+def _import_write_progress(rows_done: int, rows: int) -> None:
+    print(f"import: session {rows_done / 1e6:.2f} of {rows / 1e6:.2f} M rows written",
           file=sys.stderr, flush=True)  # fmt: skip
 
 

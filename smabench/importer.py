@@ -217,6 +217,8 @@ PROGRESS_S = 1.0
 """Seconds between two progress reports of a large import."""
 PROGRESS_MIN_BYTES = 16 << 20
 """Files from this size on report their progress."""
+WRITE_PROGRESS_MIN_ROWS = 500_000
+"""Imports from this many rows on report the progress of writing the session."""
 ProgressFn = Callable[[int, int, int], None]
 """``progress(rows, bytes_read, bytes_total)``, called at most every :data:`PROGRESS_S`."""
 
@@ -408,10 +410,12 @@ def import_text(
     wire_diameter_mm: float | None = None,
     decimal: str | None = None,
     progress: ProgressFn | None = None,
+    write_progress: Callable[[int, int], None] | None = None,
 ) -> Path:
     """Import ``path`` into a new session folder ``out``; returns the folder. Its
     ``session.json`` says how many rows were read and how many cells were empty (kept as NaN)
-    under ``import``."""
+    under ``import``. ``progress``: the reading (:data:`ProgressFn`); ``write_progress(rows_done,
+    rows)``: the writing of the session, both about once a second on a large file."""
     names = parse_columns(columns)
     if wire_length_mm is not None and not (0 < wire_length_mm < 1e5):
         raise TextImportError(f"--wire-length-mm must be positive, got {wire_length_mm}")
@@ -449,4 +453,6 @@ def import_text(
     if "t_s" not in data:
         data["t_s"] = np.arange(n, dtype=float)
         meta["t_s_is_row_index"] = True
-    return write_session(out, meta, data)
+    if n < WRITE_PROGRESS_MIN_ROWS:
+        write_progress = None
+    return write_session(out, meta, data, progress=write_progress)

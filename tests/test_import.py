@@ -126,3 +126,36 @@ def test_the_measured_raw_exports_import(tmp_path):
         assert np.min(s.data["temperature_C"]) > 20.0 and np.max(s.data["temperature_C"]) < 140.0
         held = s.data["stress_MPa"][s.data["t_s"] > 600.0]
         assert abs(np.median(held) - mpa) < 0.05 * mpa
+
+
+def test_a_large_import_streams_with_progress_and_keeps_every_value(tmp_path, monkeypatch):
+    """The reading and the writing of the session both report their progress; every row and
+    every value arrives (the written text reads back bit-identical to what was parsed)."""
+    import smabench.importer as importer
+    import smabench.sessions as sessions
+
+    monkeypatch.setattr(importer, "PROGRESS_MIN_BYTES", 0)
+    monkeypatch.setattr(importer, "PROGRESS_S", 0.0)
+    monkeypatch.setattr(importer, "WRITE_PROGRESS_MIN_ROWS", 0)
+    monkeypatch.setattr(sessions, "PROGRESS_S", 0.0)
+    monkeypatch.setattr(sessions, "WRITE_BLOCK_ROWS", 5_000)
+    n = 40_000
+    rng = np.random.default_rng(3)
+    temp_c = np.round(rng.uniform(20, 90, n), 3)
+    strain = rng.uniform(0, 0.05, n)  # 17 significant digits: × wire length is not tidy either
+    src = tmp_path / "big.csv"
+    rows = zip(temp_c.tolist(), strain.tolist(), strict=True)
+    src.write_text("Time,Temperature,Strain\n"
+                   + "".join(f"{k * 0.01:.2f},{t!r},{e!r}\n" for k, (t, e) in enumerate(rows)))
+    read: list[tuple[int, int, int]] = []
+    written: list[tuple[int, int]] = []
+    out = import_text(src, "t_s,temperature_C,strain", tmp_path / "s", wire_length_mm=100.0,
+                      progress=lambda *a: read.append(a),
+                      write_progress=lambda *a: written.append(a))  # fmt: skip
+    assert read and read[-1][0] == n and read[-1][1] == read[-1][2] == src.stat().st_size
+    assert len(written) >= n // 5_000 - 1 and all(total == n for _, total in written)
+    assert [done for done, _ in written] == sorted({done for done, _ in written})
+    s = load_session(out)
+    np.testing.assert_array_equal(s.data["temperature_C"], temp_c)
+    np.testing.assert_array_equal(s.data["position_mm"].view(np.int64),
+                                  (strain * 100.0).view(np.int64))  # fmt: skip

@@ -237,3 +237,283 @@ def test_mock_bench_serves_the_chosen_map_behind_an_adapter_latency():
         deadline = time.monotonic() + 10
         while not s.read().flags & FLAG_SENSOR_STATUS:
             assert time.monotonic() < deadline, "status error never served"
+
+
+# ------------------------------------------------ maps generated from the schema (Hypothesis)
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+SCHEMA = json.loads(SCHEMA_PATH.read_text())
+DEFS = SCHEMA["$defs"]
+TOP = SCHEMA["properties"]
+MAPS = settings(max_examples=80, deadline=None,
+                suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                       HealthCheck.too_slow])  # fmt: skip
+WIDTH = {"int16": 1, "uint16": 1, "int32": 2, "uint32": 2, "float32": 2}
+INT_RANGE = {"int16": (-(2**15), 2**15 - 1), "uint16": (0, 2**16 - 1),
+             "int32": (-(2**31), 2**31 - 1), "uint32": (0, 2**32 - 1)}  # fmt: skip
+text = st.text(st.characters(blacklist_categories=("Cs",)), max_size=20)  # TOML holds no surrogates
+
+
+def leaf(spec: dict) -> st.SearchStrategy:
+    """Values the schema accepts for one leaf (enum, const, integer, number, string, boolean)."""
+    spec = DEFS[spec["$ref"].rsplit("/", 1)[1]] if "$ref" in spec else spec
+    if "enum" in spec:
+        return st.sampled_from(spec["enum"])
+    if "const" in spec:
+        return st.just(spec["const"])
+    kind = spec.get("type")
+    if kind == "integer":
+        return st.integers(spec.get("minimum", -(2**40)), spec.get("maximum", 2**40))
+    if kind == "number":
+        lo = spec.get("minimum", spec.get("exclusiveMinimum", -1e6))
+        hi = spec.get("maximum", spec.get("exclusiveMaximum", 1e6))
+        return st.floats(lo, hi, exclude_min="exclusiveMinimum" in spec,
+                         exclude_max="exclusiveMaximum" in spec)  # fmt: skip
+    if kind == "string":
+        return text.filter(lambda s: len(s) >= spec.get("minLength", 0))
+    if kind == "boolean":
+        return st.booleans()
+    raise AssertionError(f"no strategy for {spec}")  # a new schema leaf: teach the generator
+
+
+@st.composite
+def some_of(draw, props: dict, skip: tuple[str, ...] = ()) -> dict:
+    """A table holding any subset of the schema's leaf ``props``."""
+    keys = draw(st.sets(st.sampled_from(sorted(k for k in props if k not in skip))))
+    return {k: draw(leaf(props[k])) for k in sorted(keys)}
+
+
+scale = st.floats(1e-6, 1e3).flatmap(lambda m: st.sampled_from([m, -m]))
+
+
+@st.composite
+def quantity(draw, name: str, address: int, dtype: str) -> dict:
+    spec = DEFS["status" if name == "status" else "value"]["properties"]
+    q = {"address": address, "type": dtype}
+    q.update(draw(some_of(spec, skip=("address", "type", "scale", "offset", "valid_range",
+                                      "sentinels", "units", "error_mask", "error_values"))))
+    if name == "status":
+        if draw(st.booleans()):
+            q["error_mask"] = draw(leaf(spec["error_mask"]))
+        if draw(st.booleans()):
+            q["error_values"] = draw(st.lists(st.integers(0, 2**16 - 1), max_size=4))
+        return q
+    raw = st.floats(-1e9, 1e9, width=32) if dtype == "float32" else st.integers(*INT_RANGE[dtype])
+    if draw(st.booleans()):
+        q["scale"] = draw(scale)
+    if draw(st.booleans()):
+        q["offset"] = draw(st.floats(-1e3, 1e3))
+    if draw(st.booleans()):
+        q["valid_range"] = sorted(draw(st.lists(raw, min_size=2, max_size=2)))
+    if draw(st.booleans()):
+        q["sentinels"] = draw(st.lists(raw, max_size=3))
+    if name == "position" and draw(st.booleans()):
+        q["units"] = "mm"
+    elif name != "position" and draw(st.booleans()):
+        q["units"] = draw(text)
+    return q
+
+
+@st.composite
+def valid_maps(draw) -> dict:
+    """Any map the schema and the register layout accept: the schema's own enums and bounds,
+    quantities at non-overlapping addresses, blocks that hold them, writes and checks."""
+    names = ["position"] + draw(st.lists(st.sampled_from(["temperature", "status"]),
+                                         unique=True))  # fmt: skip
+    names = draw(st.permutations(names))
+    regs: dict[str, dict] = {}
+    address = draw(st.integers(0, 65000))
+    for name in names:
+        types = DEFS["status" if name == "status" else "value"]["properties"]["type"]["enum"]
+        dtype = draw(st.sampled_from(types))
+        if address + WIDTH[dtype] > 65536:
+            break
+        regs[name] = draw(quantity(name, address, dtype))
+        address += WIDTH[dtype] + draw(st.integers(0, 3))
+    data: dict = {"registers": regs}
+    if draw(st.booleans()):
+        data["sensor"] = draw(some_of(TOP["sensor"]["properties"]))
+    if draw(st.booleans()):
+        data["line"] = draw(some_of(TOP["line"]["properties"]))
+    if draw(st.booleans()):  # one read per quantity, or one for all when they fit
+        spans = [(q["address"], WIDTH[q["type"]]) for q in regs.values()]
+        lo, hi = min(a for a, _ in spans), max(a + n for a, n in spans)
+        data["block"] = ([{"address": lo, "count": hi - lo}] if hi - lo <= 125 else
+                         [{"address": a, "count": n} for a, n in spans])  # fmt: skip
+    u16 = st.integers(0, 65535)
+    data["on_connect"] = draw(st.lists(st.fixed_dictionaries(
+        {"address": u16, "values": st.lists(u16, min_size=1, max_size=4),
+         "description": text.filter(bool)}), max_size=2))  # fmt: skip
+    data["check"] = draw(st.lists(st.fixed_dictionaries(
+        {"address": u16, "expect": u16, "description": text.filter(bool)},
+        optional={"function": st.sampled_from([3, 4])}), max_size=2))  # fmt: skip
+    return data
+
+
+def _raw_values(q) -> st.SearchStrategy:
+    if q.dtype == "float32":
+        return st.floats(width=32, allow_nan=False)
+    return st.integers(*INT_RANGE[q.dtype])
+
+
+@given(data=valid_maps(), pick=st.data())
+@MAPS
+def test_any_valid_map_loads_from_its_file_and_its_codec_round_trips(tmp_path_factory, data,
+                                                                     pick):  # fmt: skip
+    import tomli_w
+
+    jsonschema.validate(data, SCHEMA)  # the generator makes what the schema declares
+    path = tmp_path_factory.mktemp("map") / "generated.toml"
+    path.write_text(tomli_w.dumps(data), encoding="utf-8")
+    m = load_map(path)
+    assert m == parse_map(data, source=str(path), default_name="generated")
+    assert m.name == data.get("sensor", {}).get("name", "generated")
+    assert [(w.address, list(w.values)) for w in m.on_connect] == [
+        (w["address"], w["values"]) for w in data["on_connect"]]  # fmt: skip
+    for name, spec in data["registers"].items():
+        q = m.quantities[name]
+        assert (q.address, q.dtype, q.count) == (spec["address"], spec["type"], WIDTH[q.dtype])
+        covered = [b for b in m.blocks() if q in b[2]]
+        assert len(covered) == 1 and covered[0][0] <= q.address
+        assert q.address + q.count <= covered[0][0] + covered[0][1] <= covered[0][0] + 125
+        raw = pick.draw(_raw_values(q))
+        regs = q.encode_raw(raw)
+        assert len(regs) == q.count and all(0 <= r <= 0xFFFF for r in regs)
+        assert q.raw(regs) == raw  # the registers hold the raw value exactly
+        if name == "status":
+            assert q.decode(regs) == raw
+            continue
+        value = q.decode(regs)
+        if q.dtype != "float32":  # integers: the physical value encodes to the same registers
+            assert q.encode(value) == regs
+        if q.invalid_reason(raw) == "":
+            assert raw not in q.sentinels and math.isfinite(raw)
+        for bad in q.sentinels:
+            assert q.invalid_reason(bad)
+        if q.sentinels or q.valid_range is not None or q.dtype == "float32":
+            assert q.invalid_reason(q.invalid_raw)
+
+
+def _paths(node: dict, prefix: tuple = ()):
+    """Every (path, value) of a generated map, tables and arrays included."""
+    for k, v in node.items():
+        yield (*prefix, k), v
+        if isinstance(v, dict):
+            yield from _paths(v, (*prefix, k))
+        elif isinstance(v, list):
+            for i, item in enumerate(v):
+                if isinstance(item, dict):
+                    yield from _paths(item, (*prefix, k, i))
+
+
+def _set(data: dict, path: tuple, value) -> None:
+    node = data
+    for k in path[:-1]:
+        node = node[k]
+    node[path[-1]] = value
+
+
+def _schema_of(path: tuple) -> dict | None:
+    """The schema of the leaf at ``path`` of a map (None for a table or an array)."""
+    spec: dict = SCHEMA
+    for k in path:
+        if "$ref" in spec:
+            spec = DEFS[spec["$ref"].rsplit("/", 1)[1]]
+        if isinstance(k, int):
+            spec = spec.get("items", {})
+        else:
+            spec = spec.get("properties", {}).get(k, {})
+    if "$ref" in spec:
+        spec = DEFS[spec["$ref"].rsplit("/", 1)[1]]
+    return None if spec.get("type") in ("object", "array") else spec
+
+
+@st.composite
+def invalid_maps(draw) -> tuple[dict, str]:
+    """A valid map broken in one way the schema or the layout forbids; (map, what broke)."""
+    data = draw(valid_maps())
+    leaves = [(p, v) for p, v in _paths(data) if not isinstance(v, (dict, list))
+              and _schema_of(p) is not None]  # fmt: skip
+    how = draw(st.sampled_from(["unknown key", "wrong type", "not in enum", "out of bounds",
+                                "missing", "zero scale", "reversed range", "overlap",
+                                "non-finite", "outside block"]))  # fmt: skip
+    if how == "unknown key":
+        tables = [()] + [p for p, v in _paths(data) if isinstance(v, dict) and p != ("registers",)]
+        where = draw(st.sampled_from(tables))
+        allowed = set(_schema_at(where).get("properties", {}))
+        key = draw(st.text(min_size=1, max_size=12).filter(lambda k: k not in allowed))
+        node = data
+        for k in where:
+            node = node[k]
+        node[key] = draw(st.one_of(st.integers(0, 9), text))
+    elif how == "wrong type":
+        path, value = draw(st.sampled_from(leaves))
+        _set(data, path, {bool: "yes", int: "1", float: "1.5", str: 7}[type(value)])
+    elif how == "not in enum":
+        enums = [(p, _schema_of(p)["enum"]) for p, _ in leaves if "enum" in _schema_of(p)]
+        path, enum = draw(st.sampled_from(enums))  # registers.position.type is always one
+        _set(data, path, draw(st.sampled_from(["", "BIG", "float64", 5, 0]).filter(
+            lambda v: v not in enum)))  # fmt: skip
+    elif how == "out of bounds":
+        bounded = [(p, s) for p, s in ((p, _schema_of(p)) for p, _ in leaves)
+                   if s.get("type") == "integer" and "maximum" in s]  # fmt: skip
+        if not bounded:  # registers.position.address is always there
+            raise AssertionError("no bounded integer")
+        path, spec = draw(st.sampled_from(bounded))
+        _set(data, path, draw(st.sampled_from([spec["maximum"] + 1, spec.get("minimum", 0) - 1])))
+    elif how == "missing":
+        path = draw(st.sampled_from([("registers", "position"), ("registers", "position", "type"),
+                                     ("registers", "position", "address")]))  # fmt: skip
+        node = data
+        for k in path[:-1]:
+            node = node[k]
+        del node[path[-1]]
+    elif how == "zero scale":
+        data["registers"]["position"]["scale"] = draw(st.sampled_from([0, 0.0, -0.0]))
+    elif how == "reversed range":
+        lo = draw(st.integers(0, 1000))
+        data["registers"]["position"]["valid_range"] = [lo + draw(st.integers(1, 9)), lo]
+    elif how == "overlap":
+        pos = data["registers"]["position"]
+        data["registers"]["temperature"] = {"address": pos["address"] + WIDTH[pos["type"]] - 1,
+                                            "type": "int16"}  # fmt: skip
+        data["registers"].pop("status", None)
+        data.pop("block", None)
+        if pos["address"] + WIDTH[pos["type"]] - 1 > 65535:
+            raise AssertionError("unreachable: position fits")
+    elif how == "non-finite":
+        numbers = [p for p, v in leaves if isinstance(v, float)] + [
+            ("registers", "position", "offset")]  # fmt: skip
+        _set(data, draw(st.sampled_from(numbers)), draw(st.sampled_from([math.nan, math.inf,
+                                                                         -math.inf])))  # fmt: skip
+    else:  # a block that holds no quantity
+        pos = data["registers"]["position"]
+        far = (pos["address"] + 300) % 65000
+        data["block"] = [{"address": far, "count": 1}]
+    return data, how
+
+
+def _schema_at(path: tuple) -> dict:
+    spec: dict = SCHEMA
+    for k in path:
+        if "$ref" in spec:
+            spec = DEFS[spec["$ref"].rsplit("/", 1)[1]]
+        spec = spec.get("items", {}) if isinstance(k, int) else spec["properties"][k]
+    return DEFS[spec["$ref"].rsplit("/", 1)[1]] if "$ref" in spec else spec
+
+
+@given(broken=invalid_maps())
+@MAPS
+def test_any_invalid_map_is_one_line_naming_the_file_and_the_key(tmp_path_factory, broken):
+    import tomli_w
+
+    data, how = broken
+    path = tmp_path_factory.mktemp("bad") / "broken.toml"
+    path.write_text(tomli_w.dumps(data), encoding="utf-8")
+    with pytest.raises(SensorMapError) as info:
+        load_map(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: "), message
+    assert len(message.splitlines()) == 1 and message.isprintable(), (how, message)
+    assert "[" in message or "(top level)" in message, (how, message)  # names where

@@ -3,12 +3,15 @@ it (``smabench import`` in a child process), with its peak memory.
 
 The file is made here: a metadata line, a header and a units line, then ``t_s``,
 ``temperature_C`` and ``strain`` rows of a slow thermal cycle (≈ 25 bytes a row, so 200 MB is
-≈ 8 M rows), with a few empty cells as real exports have them.
+≈ 8 M rows), with a few empty cells as real exports have them. Besides the wall time and the
+peak memory it prints the import's CPU time (user + system, all threads) and the load average:
+on a shared machine the wall time is the CPU time stretched by the other work.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import resource
 import subprocess
 import sys
@@ -21,6 +24,8 @@ import numpy as np
 from smabench.argtypes import positive
 
 ROWS_PER_BLOCK = 1_000_000
+EMPTY_EVERY = 100_003
+"""One strain cell in this many rows is empty (a sensor dropout)."""
 
 
 def make_csv(path: Path, mb: float, seed: int = 0) -> int:
@@ -38,8 +43,10 @@ def make_csv(path: Path, mb: float, seed: int = 0) -> int:
             temp_c = 60.0 + 35.0 * np.sin(2 * np.pi * t_s / 600.0)
             strain = 0.04 / (1.0 + np.exp(-(temp_c - 60.0) / 4.0))
             strain += rng.normal(0.0, 1e-5, ROWS_PER_BLOCK)
+            dropout = (rows + np.arange(ROWS_PER_BLOCK)) % EMPTY_EVERY == 7  # an empty cell
             table = pa.table({
-                "t": np.round(t_s, 2), "T": np.round(temp_c, 3), "e": np.round(strain, 6),
+                "t": np.round(t_s, 2), "T": np.round(temp_c, 3),
+                "e": pa.array(np.round(strain, 6), mask=dropout),
             })  # fmt: skip
             buf = pa.BufferOutputStream()
             pacsv.write_csv(table, buf, pacsv.WriteOptions(include_header=False))
@@ -71,10 +78,14 @@ def cmd_bench_import(args: argparse.Namespace) -> int:
         if proc.returncode != 0:
             print(proc.stdout, end="")
             return proc.returncode
-        peak_mb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+        usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+        peak_mb = usage.ru_maxrss / 1024.0
+        cpu_s = usage.ru_utime + usage.ru_stime
+        load = os.getloadavg()[0]
         print(proc.stdout, end="")
         print(f"{rows / wall_s / 1e6:.2f} M rows/s, {wall_s:.1f} s, peak RSS {peak_mb:.0f} MB "
-              f"({size_mb:.0f} MB file)")  # fmt: skip
+              f"({size_mb:.0f} MB file); CPU {cpu_s:.1f} s on {os.cpu_count()} CPUs, "
+              f"load average {load:.1f}")  # fmt: skip
     return 0
 
 

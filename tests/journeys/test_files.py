@@ -13,6 +13,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import HealthCheck, example, given, settings
+from test_sensor_maps import invalid_maps
 
 from journeys.harness import Installed, Recordings, cycles_session
 
@@ -128,3 +130,25 @@ def test_import_a_european_file(installed: Installed, cwd: Path) -> None:
     assert len(table) == 200
     assert [float(r["temperature_C"]) for r in table] == [round(t, 3) for t, _ in rows]
     assert [float(r["position_mm"]) for r in table] == pytest.approx([100 * s for _, s in rows])
+
+
+@given(broken=invalid_maps())
+@example(broken=({"registers": {"position": {"address": 0, "type": "int16"}}, "gain\nx": 1},
+                 "unknown key"))  # a quoted TOML key holding a line end
+@settings(max_examples=6, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+def test_run_refuses_a_broken_sensor_map_in_one_line(installed: Installed, tmp_path_factory,
+                                                     broken) -> None:  # fmt: skip
+    """A register map generated from the schema and broken one way (an unknown key, a wrong
+    type, a value outside the schema's bounds, a zero scale, overlapping registers …), given
+    to ``smabench run``: one line naming the file, exit 2, before any device or session."""
+    import tomli_w
+
+    data, how = broken
+    cwd = tmp_path_factory.mktemp("badmap")
+    (cwd / "my-sensor.toml").write_text(tomli_w.dumps(data), encoding="utf-8")
+    line = installed.usage_error("run", "--mock", "--load-kg", "2", "--cycles", "1",
+                                 "--sensor-map", "my-sensor.toml", cwd=cwd)  # fmt: skip
+    assert "my-sensor.toml" in line and "--sensor-map" in line, (how, line)
+    assert line.isprintable(), (how, line)
+    assert sorted(p.name for p in cwd.iterdir()) == ["my-sensor.toml"]  # no session, no mock

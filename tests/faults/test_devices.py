@@ -15,9 +15,10 @@ from smabench.sessions import FLAG_AFTER_END, FLAG_SENSOR_INVALID, load_session
 
 from .conftest import (
     END_TIMEOUT_S,
-    REPO,
     assert_ends_aborted,
     assert_wire_safe,
+    command_cwd,
+    command_env,
     rows_on_disk,
     smabench_command,
 )
@@ -50,7 +51,8 @@ def test_a_second_program_on_the_driver_port_is_refused_naming_the_holder(tmp_pa
         "port"
     ]
     second = subprocess.run([*smabench_command(), "calibrate", "show", "--port", port],
-                            capture_output=True, text=True, cwd=REPO, timeout=120)  # fmt: skip
+                            capture_output=True, text=True, cwd=command_cwd(),
+                            env=command_env(), timeout=120)  # fmt: skip
     lines = second.stderr.strip().splitlines()
     assert second.returncode == 2, second.stderr
     assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr

@@ -18,7 +18,14 @@ from smabench.sessions import (
     load_session,
 )
 
-from .conftest import assert_ends_aborted, assert_wire_safe, rows_on_disk, smabench_command
+from .conftest import (
+    assert_ends_aborted,
+    assert_wire_safe,
+    command_cwd,
+    command_env,
+    rows_on_disk,
+    smabench_command,
+)
 
 
 def _row(i: int) -> dict:
@@ -65,7 +72,7 @@ def test_disk_full_at_the_start_is_refused_with_the_space_needed(small_fs, tmp_p
     proc = subprocess.run(
         [*smabench_command(), "run", "--mock", "--load-kg", "1", "--cycles", "5",
          "--out", str(fs), "--session-id", "s"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, cwd=command_cwd(), env=command_env(),
     )  # fmt: skip
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, proc.stderr
@@ -81,7 +88,7 @@ def test_read_only_session_folder_is_refused_before_any_device(small_fs):
     proc = subprocess.run(
         [*smabench_command(), "run", "--mock", "--load-kg", "1", "--cycles", "1",
          "--out", str(fs / "sessions"), "--session-id", "s"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, cwd=command_cwd(), env=command_env(),
     )  # fmt: skip
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, proc.stderr

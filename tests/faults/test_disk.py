@@ -116,21 +116,3 @@ def test_disk_full_during_a_session_stops_at_the_last_whole_row(small_fs, tmp_pa
     assert not (run.folder / RESERVE_FILE).exists()
     os.unlink(fs / "filler")
     assert_wire_safe(trace)
-
-
-def test_a_wall_clock_step_is_stated_in_session_json(tmp_path, monkeypatch):
-    """In-process (libfaketime cannot step Python's clock, docs/faults.md): the writer times on
-    the monotonic clock and says by how much the wall clock moved besides."""
-    import time
-
-    w = SessionWriter(tmp_path / "s", {"kind": "test"}, flush_s=0.0)
-    for i in range(10):
-        w.append(_row(i))
-    real = time.time
-    monkeypatch.setattr(time, "time", lambda: real() + 3600.0)  # the clock stepped +1 h
-    for i in range(10, 20):
-        w.append(_row(i))
-    w.close()
-    meta = json.loads((tmp_path / "s" / "session.json").read_text())
-    assert meta["status"] == "completed" and meta["rows"] == 20
-    assert 3599.0 < meta["wall_clock_stepped_s"] < 3601.0

@@ -69,6 +69,11 @@ def smabench_command() -> list[str]:
     return [str(_installed().script)]
 
 
+def installed_python() -> Path:
+    """The installed venv's interpreter (a client program of the installed package)."""
+    return _installed().python
+
+
 def command_env(extra: dict[str, str] | None = None) -> dict[str, str]:
     """The environment the installed command runs in: no PYTHON*/SMABENCH_* of the caller's, a
     HOME of its own, plus ``extra``."""

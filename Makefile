@@ -5,13 +5,14 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-# Debian packages: firmware toolchain + emulator, fuzzing, pty helpers, Qt offscreen + Xvfb.
+# Debian packages: firmware toolchain + emulator, fuzzing, pty helpers, Qt offscreen + Xvfb,
+# libfaketime (tests/faults: the wall clock stepped under a running session).
 APT_PACKAGES := gcc-avr avr-libc binutils-avr simavr libsimavr-dev libelf-dev pkg-config \
                 clang libclang-rt-14-dev socat avrdude arduino-core-avr \
                 libegl1 libgl1 libx11-6 libdbus-1-3 libfontconfig1 libfreetype6 libglib2.0-0 \
                 libxkbcommon0 xvfb xauth libxcb-cursor0 libxcb-icccm4 libxcb-image0 \
                 libxcb-keysyms1 libxcb-render-util0 libxcb-render0 libxcb-shape0 libxcb-util1 \
-                libxcb-xkb1 libxkbcommon-x11-0 libxtst6 ngspice
+                libxcb-xkb1 libxkbcommon-x11-0 libxtst6 ngspice libfaketime
 
 .PHONY: run test test-python test-firmware firmware-build lint sysdeps venv clean bench
 

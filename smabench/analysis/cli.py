@@ -91,6 +91,11 @@ def cmd_analyze_each(args: argparse.Namespace) -> int:
         raise AnalysisError("--load-kg applies to one session only; give each its session.json")
     for p in args.sessions:
         load_session_meta_check(p)
+    if not args.scheduler:  # a cluster's workers have memories of their own
+        from smabench.analysis.data import require_memory
+        from smabench.tasks import local_workers
+
+        require_memory(args.sessions, local_workers(len(args.sessions), args.workers), each=True)
     cands = [c.strip() for c in args.candidates.split(",") if c.strip()] if args.candidates \
         else None  # fmt: skip
     tasks = [(str(p), args.wire_length_mm, args.wire_diameter_mm, cands) for p in args.sessions]
@@ -109,7 +114,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     if getattr(args, "scheduler", None):
         raise AnalysisError("--scheduler needs --each (one task per session)")
     from smabench.analysis.core import analyse
-    from smabench.analysis.data import prepare_session
+    from smabench.analysis.data import prepare_session, require_memory
     from smabench.analysis.report import (
         summary,
         value_text,
@@ -123,6 +128,7 @@ def cmd_analyze(args: argparse.Namespace) -> int:
     say = (lambda m: None) if args.quiet else (lambda m: print(m, flush=True))
     if len(args.sessions) > 1 and args.load_kg is not None:
         raise AnalysisError("--load-kg applies to one session only; give each its session.json")
+    require_memory(args.sessions)  # whole sessions are held: refused up front when they cannot
     sessions = [
         prepare_session(load_session(p), args.load_kg, args.wire_length_mm, args.wire_diameter_mm)
         for p in args.sessions

@@ -417,3 +417,44 @@ def make_grid(s: SessionData, dt: float | None, stress_mpa: float) -> tuple[Grid
     )  # fmt: skip
     idx = np.clip(np.rint((s.t - t0) / dt).astype(int), 0, m - 1)
     return g, idx
+
+
+ANALYSIS_BYTES_PER_ROW = 2048
+"""Memory the analysis holds per sample row (the loaded columns, the grids, every candidate's
+simulation): measured peak resident memory 212 MB for a 5 600-row session and 293 MB for a
+56 000-row one, 1.6 kB a row, rounded up."""
+
+
+def estimated_rows(path: str | Path) -> int:
+    """A session's sample rows, estimated from its files' sizes and the length of its first
+    lines (no parsing: the estimate comes before any load)."""
+    from smabench.sessions import sample_files
+
+    p = Path(path)
+    files = sample_files(p) if p.is_dir() else [p] if p.is_file() else []
+    if not files:
+        return 0
+    with open(files[0], "rb") as fh:
+        head = fh.read(65536)
+    lines = head.count(b"\n")
+    if lines < 2:
+        return lines
+    per_row = len(head[head.index(b"\n") + 1 : head.rindex(b"\n") + 1]) / (lines - 1)
+    return int(sum(f.stat().st_size for f in files) / max(per_row, 1.0))
+
+
+def require_memory(paths: list[str], processes: int = 1, each: bool = False) -> None:
+    """Refuse up front (:class:`smabench.memlimit.NotEnoughMemoryError`, exit 2) when analysing
+    ``paths`` needs more memory than is free: all of them at once (joint), or with ``each`` the
+    largest one in each of ``processes`` workers. The analysis holds whole sessions: it is not
+    streamed."""
+    from smabench.memlimit import require
+
+    rows = {str(p): estimated_rows(p) for p in paths}
+    if each:
+        where, n = max(rows.items(), key=lambda kv: kv[1])
+        what = f"analysing {where} (about {n:,} rows)".replace(",", " ")
+    else:
+        n = sum(rows.values())
+        what = f"analysing {len(rows)} session(s) together (about {n:,} rows)".replace(",", " ")
+    require(ANALYSIS_BYTES_PER_ROW * n, what, processes if each else 1)

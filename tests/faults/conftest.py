@@ -1,7 +1,9 @@
-"""Fault injection at the bench: fixtures that run ``smabench run --mock`` as a subprocess over
-the real transports and inject faults from outside it (signals, a small file system, a second
-program on the port, the mock bench's fault commands), and wait on what the run prints or
-writes (never a fixed sleep).
+"""Fault injection at the bench: fixtures that run the *installed* ``smabench run --mock`` (the
+console script of a clean ``pip install .`` into a fresh venv, :mod:`journeys.harness`, never
+this checkout's modules) as a subprocess over the real transports and inject faults from outside
+it (signals, a small file system, a second program on the port, the mock bench's fault commands,
+a faked wall clock, a memory limit), and wait on what the run prints or writes (never a fixed
+sleep).
 
 Each test checks the same ending (issue 29): the wire safe, the session closed ``aborted`` with
 a reason in words, every row written before readable, the exit code the README gives (1 for an
@@ -12,12 +14,12 @@ tests; keep both true.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import os
 import queue
 import re
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
@@ -25,17 +27,62 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from journeys.harness import Installed, install, shared_dir
 
-REPO = Path(__file__).resolve().parents[2]
 START_TIMEOUT_S = 120.0  # the mock's and the run's start-up beside other work on two cores
 END_TIMEOUT_S = 60.0
 SAFE_CURRENT_A = 0.020
 PROGRESS = re.compile(r"^\s+t\s+(-?[\d.]+) s")
 
 
+_INSTALLED: list[Installed] = []  # the one installed smabench of this run (set below)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def installed(tmp_path_factory: pytest.TempPathFactory) -> Installed:
+    """smabench installed from a clean copy of this checkout into a fresh venv, once per test run
+    (the journey tests' venv and lock: one install serves both folders and every xdist worker)."""
+    chosen = os.environ.get("SMABENCH_JOURNEY_VENV")
+    shared = shared_dir(tmp_path_factory)
+    venv = Path(chosen) if chosen else shared / "journey-venv"
+    with open(shared / "journey-venv.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one install; the other workers wait for it
+        if not (venv / ".journey-ok").exists():
+            install(venv, shared / "journey-build")
+    home = shared / "journey-home"
+    home.mkdir(exist_ok=True)
+    inst = Installed(venv=venv, home=home)
+    where = inst.py("import smabench; print(smabench.__file__)", cwd=home).stdout.strip()
+    assert Path(where).resolve().is_relative_to(venv.resolve()), where
+    _INSTALLED[:] = [inst]
+    return inst
+
+
+def _installed() -> Installed:
+    assert _INSTALLED, "the session fixture `installed` has not run"
+    return _INSTALLED[0]
+
+
 def smabench_command() -> list[str]:
-    """The smabench command line: this checkout's (the project venv's interpreter)."""
-    return [sys.executable, "-m", "smabench.cli"]
+    """The smabench command line: the installed console script (no ``python -m`` of this
+    checkout)."""
+    return [str(_installed().script)]
+
+
+def installed_python() -> Path:
+    """The installed venv's interpreter (a client program of the installed package)."""
+    return _installed().python
+
+
+def command_env(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment the installed command runs in: no PYTHON*/SMABENCH_* of the caller's, a
+    HOME of its own, plus ``extra``."""
+    return _installed().env(extra)
+
+
+def command_cwd() -> Path:
+    """The working directory of the commands: outside the checkout."""
+    return _installed().home
 
 
 class Run:
@@ -56,8 +103,8 @@ class Run:
         if trace is not None:
             args += ["--mock-trace", str(trace)]
         self.proc = subprocess.Popen(
-            args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
-            start_new_session=True, env={**os.environ, **(env or {})},
+            args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            cwd=command_cwd(), start_new_session=True, env=command_env(env),
         )  # fmt: skip
         self.lines: queue.Queue[str | None] = queue.Queue()
         self.stdout: list[str] = []
@@ -141,11 +188,12 @@ class Mock:
     ``--port``/``--sensor``): :meth:`send` injects a fault (``sensor-exception CODE N``,
     ``sensor-delay S N``, …), :attr:`devices` are the run's options to reach it."""
 
-    def __init__(self, trace: Path, *extra: str) -> None:
+    def __init__(self, trace: Path, *extra: str, env: dict[str, str] | None = None) -> None:
         self.proc = subprocess.Popen(
             [*smabench_command(), "mock", "--control-stdin", "--load-kg", "1", "--trace",
              str(trace), *extra],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1, cwd=REPO,
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1,
+            cwd=command_cwd(), env=command_env(env),
         )  # fmt: skip
         found: dict[str, str] = {}
         for line in self.proc.stdout:
@@ -180,8 +228,8 @@ def mock_bench(tmp_path):
     """Start a mock bench with ``mock_bench(trace, *args)``; closed at the end of the test."""
     mocks: list[Mock] = []
 
-    def start(trace: Path, *extra: str) -> Mock:
-        m = Mock(trace, *extra)
+    def start(trace: Path, *extra: str, **kw) -> Mock:
+        m = Mock(trace, *extra, **kw)
         mocks.append(m)
         return m
 

@@ -15,9 +15,11 @@ from smabench.sessions import FLAG_AFTER_END, FLAG_SENSOR_INVALID, load_session
 
 from .conftest import (
     END_TIMEOUT_S,
-    REPO,
     assert_ends_aborted,
     assert_wire_safe,
+    command_cwd,
+    command_env,
+    installed_python,
     rows_on_disk,
     smabench_command,
 )
@@ -50,7 +52,8 @@ def test_a_second_program_on_the_driver_port_is_refused_naming_the_holder(tmp_pa
         "port"
     ]
     second = subprocess.run([*smabench_command(), "calibrate", "show", "--port", port],
-                            capture_output=True, text=True, cwd=REPO, timeout=120)  # fmt: skip
+                            capture_output=True, text=True, cwd=command_cwd(),
+                            env=command_env(), timeout=120)  # fmt: skip
     lines = second.stderr.strip().splitlines()
     assert second.returncode == 2, second.stderr
     assert len(lines) == 1 and "Traceback" not in second.stderr, second.stderr
@@ -126,49 +129,76 @@ def test_sensor_frozen_while_the_wire_transforms_ends_the_session(tmp_path, run_
     assert_wire_safe(trace)
 
 
-def test_a_still_wire_with_a_steady_reading_is_not_taken_for_a_frozen_sensor():
-    from smabench.bench.runtime import FrozenSensor
+STILL_WIRE = """
+from smabench.bench.runtime import FrozenSensor
 
-    f = FrozenSensor(as_c=68.0, af_c=78.0)
-    # no current: the wire rests at 25 °C, the sensor repeats its last digit for a minute
-    assert not any(f.update(0.005 * k, 1.2345, 25.0) for k in range(12_000))
-    # heating that stays below the transformation: no motion, no alarm
-    assert not any(f.update(60 + 0.005 * k, 1.2345, 25.0 + k * 0.01) for k in range(4000))
-    # through the transformation with the same reading: frozen
-    assert "frozen" in f.update(100.0, 1.2345, 120.0)
+f = FrozenSensor(as_c=68.0, af_c=78.0)
+# no current: the wire rests at 25 °C, the sensor repeats its last digit for a minute
+assert not any(f.update(0.005 * k, 1.2345, 25.0) for k in range(12_000))
+# heating that stays below the transformation: no motion, no alarm
+assert not any(f.update(60 + 0.005 * k, 1.2345, 25.0 + k * 0.01) for k in range(4000))
+# through the transformation with the same reading: frozen
+print(f.update(100.0, 1.2345, 120.0))
+"""
+
+
+def test_a_still_wire_with_a_steady_reading_is_not_taken_for_a_frozen_sensor():
+    """The installed package's check (its interpreter), fed a still wire's readings."""
+    proc = subprocess.run([str(installed_python()), "-c", STILL_WIRE], capture_output=True,
+                          text=True, cwd=command_cwd(), env=command_env(), timeout=120)  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert "frozen" in proc.stdout, proc.stdout
+
+
+REPLUG_CLIENT = """
+import os, sys, time
+from smabench.drivers.current_source import CurrentSource
+
+source = CurrentSource(sys.argv[1], max_reconnect_attempts=20)
+source.connect()
+assert source.link_ok
+print("connected", flush=True)
+sys.stdin.readline()  # the test unplugs and plugs back, then says so
+deadline = time.monotonic() + 60
+while not (source.link_ok and source._link.port_name == sys.argv[2]):
+    assert time.monotonic() < deadline, "not reconnected through the stable name"
+    time.sleep(0.05)  # polls the condition
+print("pong", source.ping() > 0, flush=True)  # a round trip to the bench behind the name
+source.close()
+"""
 
 
 @pytest.mark.slow
 def test_driver_replugged_under_another_name_is_found_again_by_its_stable_name(
-    tmp_path, mock_bench, monkeypatch
+    tmp_path, mock_bench
 ):
     """udev's /dev/serial/by-id names an adapter by its serial number whatever ttyUSB it gets:
-    the link follows it on a reopen. The replug: the first bench's pty removed (the mock
-    killed), the stable name moved to a second bench's new pty, as udev does."""
-    import time
-
-    from smabench.drivers.current_source import CurrentSource
-
+    the link follows it on a reopen. The link of the installed package (its interpreter, a
+    client process such as the GUI's); the replug from outside it: the first bench's pty
+    removed (the mock killed), the stable name moved to a second bench's new pty, as udev
+    does."""
     by_id = tmp_path / "by-id"
     by_id.mkdir()
-    monkeypatch.setenv("SMABENCH_SERIAL_BY_ID", str(by_id))
     first = mock_bench(tmp_path / "t1.csv")
     second = mock_bench(tmp_path / "t2.csv")
     stable = by_id / "usb-FTDI_FT232R_USB_UART_A10KZ3XY-if00-port0"
     stable.symlink_to(first.driver)
-    source = CurrentSource(first.driver, max_reconnect_attempts=20)
+    client = subprocess.Popen(
+        [str(installed_python()), "-c", REPLUG_CLIENT, first.driver, second.driver],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=command_cwd(), env=command_env({"SMABENCH_SERIAL_BY_ID": str(by_id)}),
+    )  # fmt: skip
     try:
-        source.connect()
-        assert source.link_ok
+        assert client.stdout.readline().strip() == "connected", client.stderr.read()
         first.proc.kill()  # unplugged: its pty is gone
         first.proc.wait()
         tmp = by_id / ".new"
         tmp.symlink_to(second.driver)
         os.replace(tmp, stable)  # plugged back: another device name, the same stable name
-        deadline = time.monotonic() + 60
-        while not (source.link_ok and source._link.port_name == second.driver):
-            assert time.monotonic() < deadline, "not reconnected through the stable name"
-            time.sleep(0.05)  # polls the condition
-        assert source.ping() > 0  # a round trip to the bench now behind the stable name
+        out, err = client.communicate("replugged\n", timeout=120)
     finally:
-        source.close()
+        if client.poll() is None:
+            client.kill()
+            client.wait()
+    assert client.returncode == 0 and out.strip() == "pong True", (out, err)
+    assert f"port {first.driver} is now {second.driver} ({stable})" in err, err

@@ -18,9 +18,10 @@ from smabench.sessions import RECORDER_DIED, SAMPLES_FILE, load_session, session
 
 from .conftest import (
     END_TIMEOUT_S,
-    REPO,
     assert_ends_aborted,
     assert_wire_safe,
+    command_cwd,
+    command_env,
     rows_on_disk,
     smabench_command,
 )
@@ -124,7 +125,8 @@ def test_kill_9_of_a_plan_then_resume_shows_the_killed_session_aborted(tmp_path,
     plan = tmp_path / "k9.toml"
     plan.write_text(textwrap.dedent(PLAN.format(out=tmp_path / "out", cycles=1)))
     proc = subprocess.Popen([*smabench_command(), "plan", "run", str(plan), "--mock"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            cwd=command_cwd(), env=command_env(),
                             start_new_session=True)  # fmt: skip
     killed = tmp_path / "out" / "k9" / "01-one"
     try:
@@ -140,8 +142,8 @@ def test_kill_9_of_a_plan_then_resume_shows_the_killed_session_aborted(tmp_path,
         proc.wait()
     assert session_status(killed) == ("aborted", RECORDER_DIED)
     res = subprocess.run([*smabench_command(), "plan", "resume", str(tmp_path / "out" / "k9"),
-                          "--mock"], capture_output=True, text=True, cwd=REPO,
-                         timeout=300)  # fmt: skip
+                          "--mock"], capture_output=True, text=True, cwd=command_cwd(),
+                         env=command_env(), timeout=300)  # fmt: skip
     assert res.returncode == 0, res.stderr
     assert f"01-one aborted: {RECORDER_DIED}" in res.stdout, res.stdout
     meta = json.loads((killed / "session.json").read_text())

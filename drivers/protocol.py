@@ -102,6 +102,8 @@ class Flag(IntFlag):
     VSENSE_FAULT = 0x0800
     CAL_DEFAULT = 0x1000
     DISSIPATION = 0x2000
+    CUT_TRIP = 0x4000  # latched: the hardware cut opened unasked (comparator, watchdog, e-stop)
+    CUT_OPEN = 0x8000  # state: the series switch (eFuse) is open
 
 
 class TcStatus(IntFlag):
@@ -113,7 +115,9 @@ class TcStatus(IntFlag):
     ABSENT = 0x80  # no chip answered
 
 
-LATCHED_FAULTS = Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.OVERTEMP | Flag.ESTOP
+LATCHED_FAULTS = (
+    Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.OVERTEMP | Flag.ESTOP | Flag.CUT_TRIP
+)
 EVENTS = Flag.HOST_TIMEOUT | Flag.WATCHDOG_RESET | Flag.LEASE_EXPIRED
 FAULT_TEXT = {
     Flag.OVERCURRENT: "overcurrent (measured current above limit + 20 % for 5 ms)",
@@ -126,6 +130,8 @@ FAULT_TEXT = {
     Flag.NTC_FAULT: "ambient sensor fault (NTC open or shorted)",
     Flag.TC_FAULT: "thermocouple fault (open, or shorted to GND or VCC)",
     Flag.VSENSE_FAULT: "wire-voltage ADC not answering",
+    Flag.CUT_TRIP: "hardware cut tripped (over-current comparator, external watchdog or e-stop "
+    "opened the supply switch)",
 }
 
 

@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from smabench.drivers.mock.cut import FAULTS
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.drivers.mock.plant_link import PlantLink
 from smabench.drivers.mock.serial_device import SerialDevice
@@ -51,6 +52,8 @@ BOOTLOADER_HEX = Path(
 SENSOR_MAP = "generic-rs485-laser"
 FIRMWARES = ("python", "emulated")
 PR_SET_PDEATHSIG = 1
+FAULT_ARM_MA = 500.0
+"""An injected fault waits for the wire current to exceed this (mA): the cut has work to do."""
 REALTIME_MAX_SPEED = 5.0
 """Fastest mock speed (device time / wall time) still run real-time with ``realtime``: at 5× a
 mock takes about a third of a core; faster ones take more than a stand-in device should."""
@@ -212,6 +215,7 @@ class MockBench:
         adapter_latency_s: float = 0.0,
         thermocouple: bool = False,
         realtime: bool = False,
+        fault: str | None = None,
     ) -> None:
         """``realtime``: at real-time speed (1), the stand-in driver (the Python firmware's thread
         or the simavr harness) at SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed;
@@ -220,7 +224,19 @@ class MockBench:
         ``sensor_map``: the register map the sensor serves (any shipped map or a path);
         ``adapter_latency_s``: every sensor answer held this long, as by an FTDI USB/RS-485
         adapter's latency timer (16 ms by default on a real one); ``thermocouple``: a MAX31855 on
-        the wire reports the plant's wire temperature (the session's ``temperature_C``)."""
+        the wire reports the plant's wire temperature (the session's ``temperature_C``);
+        ``fault``: one of :data:`~smabench.drivers.mock.cut.FAULTS`, injected once the wire
+        current first exceeds :data:`FAULT_ARM_MA` (Python firmware): a shorted MOSFET or a wire
+        shorted to ground stays; a hung MCU ends with its own watchdog's reset. What the hardware
+        cut did is printed on stdout and kept in :attr:`fault_report`."""
+        if fault is not None and fault not in FAULTS:
+            raise ValueError(f"fault must be one of {', '.join(FAULTS)}, got {fault!r}")
+        if fault is not None and firmware != "python":
+            raise ValueError("--fault needs the Python firmware (the stand-in models the cut)")
+        self.fault = fault
+        self.fault_ms: float | None = None  # device time the fault began
+        self.fault_report: str | None = None
+        self._resets_at_fault = 0
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
@@ -253,7 +269,31 @@ class MockBench:
             resistance_ohm=state.resistance_ohm,
             ambient_c=state.ambient_c,
             wire_temperature_c=state.temperature_c if self.thermocouple else None,
+            fault=self._fault_now(t_ms, fw),
         )
+
+    def _fault_now(self, t_ms: float, fw: MockFirmware) -> str | None:
+        """The injected fault for this step: armed until the current first flows, then on (a hung
+        MCU: until its watchdog has reset it); its outcome reported once the cut opened."""
+        if self.fault is None:
+            return None
+        if self.fault_ms is None:
+            if fw.current_ma < FAULT_ARM_MA:
+                return None
+            self.fault_ms = t_ms
+            self._resets_at_fault = fw.watchdog_resets
+            print(f"fault: {self.fault} at {t_ms:.0f} ms (device time), wire current "
+                  f"{fw.current_ma:.0f} mA", flush=True)
+        if self.fault_report is None and fw.cut.events:
+            event = fw.cut.events[-1]
+            if event.t_ms >= self.fault_ms:
+                self.fault_report = (
+                    f"cut: opened by the {event.cause} {event.t_ms - self.fault_ms:.0f} ms after "
+                    f"the {self.fault} (device time); wire current now {fw.current_ma:.0f} mA")
+                print(self.fault_report, flush=True)
+        if self.fault == "mcu-hang" and fw.watchdog_resets > self._resets_at_fault:
+            return None  # the MCU's own watchdog reset it: the loop runs again
+        return self.fault
 
     def _start_socat(self) -> tuple[str, str] | None:
         if not self.rtu or shutil.which("socat") is None:

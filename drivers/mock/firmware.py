@@ -147,6 +147,7 @@ class MockFirmware:
         self.shunt_ma = 0.0  # through the shunt (the wire's, unless it is shorted to ground)
         self.fault_ms: float | None = None  # device time the injected fault began
         self.hang_ms = 0  # how long the main loop has been hung
+        self.watchdog_resets = 0  # resets by the AVR's own watchdog after a hang
         self.start_ms = float(now_ms)  # device time of the reset
         self.core_ms = math.floor(now_ms)  # the core's hal_millis()
         self.last_tick_ms = float(now_ms)
@@ -254,7 +255,7 @@ class MockFirmware:
             self._core.init(True)
             io.cut_latch = latch  # the cut's hardware keeps its state through the MCU's reset
             io.cut_feeds = feeds
-            self._wire.fault = None
+            self.watchdog_resets += 1
             self.hang_ms = 0
 
     @property

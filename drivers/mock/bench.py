@@ -237,6 +237,7 @@ class MockBench:
         self.fault_ms: float | None = None  # device time the fault began
         self.fault_report: str | None = None
         self._resets_at_fault = 0
+        self._reset_reported = False
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
@@ -269,10 +270,10 @@ class MockBench:
             resistance_ohm=state.resistance_ohm,
             ambient_c=state.ambient_c,
             wire_temperature_c=state.temperature_c if self.thermocouple else None,
-            fault=self._fault_now(t_ms, fw),
+            fault=self._fault_now(t_ms, dt_s, fw),
         )
 
-    def _fault_now(self, t_ms: float, fw: MockFirmware) -> str | None:
+    def _fault_now(self, t_ms: float, dt_s: float, fw: MockFirmware) -> str | None:
         """The injected fault for this step: armed until the current first flows, then on (a hung
         MCU: until its watchdog has reset it); its outcome reported once the cut opened."""
         if self.fault is None:
@@ -280,9 +281,9 @@ class MockBench:
         if self.fault_ms is None:
             if fw.current_ma < FAULT_ARM_MA:
                 return None
-            self.fault_ms = t_ms
+            self.fault_ms = t_ms - dt_s * 1000.0  # it acts from the start of this step
             self._resets_at_fault = fw.watchdog_resets
-            print(f"fault: {self.fault} at {t_ms:.0f} ms (device time), wire current "
+            print(f"fault: {self.fault} at {self.fault_ms:.0f} ms (device time), wire current "
                   f"{fw.current_ma:.0f} mA", flush=True)
         if self.fault_report is None and fw.cut.events:
             event = fw.cut.events[-1]
@@ -292,6 +293,10 @@ class MockBench:
                     f"the {self.fault} (device time); wire current now {fw.current_ma:.0f} mA")
                 print(self.fault_report, flush=True)
         if self.fault == "mcu-hang" and fw.watchdog_resets > self._resets_at_fault:
+            if self.fault_report is not None and not self._reset_reported:
+                self._reset_reported = True
+                print(f"mcu: reset by its own watchdog at {t_ms:.0f} ms (device time)",
+                      flush=True)
             return None  # the MCU's own watchdog reset it: the loop runs again
         return self.fault
 

@@ -200,6 +200,9 @@ class MockFirmware:
         returns what the firmware queued for the host (its ACKs)."""
         out = bytearray()
         view = memoryview(bytes(data))
+        if self._wire.fault == "mcu-hang":  # a hung loop reads nothing: the bytes wait (a reset
+            self._core.rx_push(bytes(view))  # loses them)
+            return b""
         while view or self._core.rx_pending():
             pending = self._core.rx_pending()
             taken = self._core.rx_push(bytes(view)) if view else 0

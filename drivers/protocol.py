@@ -42,6 +42,10 @@ HEAT_MAX_TEMPERATURE_RANGE_C = (30.0, 400.0)
 BAUDRATE = 115200  # nominal; the ATmega328P at 16 MHz runs 117 647 baud (U2X, UBRR 16: +2.1 %)
 DEVICE_BAUD = 117_647
 READY_AFTER_RESET_S = 0.005
+CUT_STARTUP_S = 0.005
+"""After a reset the firmware reads the hardware cut back from this long on (CUT_STARTUP_MS in
+proto.h): at power-on it clears the cut's latch then; after a watchdog reset it reports
+CUT_TRIP from then on (PROTOCOL.md "Safety")."""
 """The application listens this long after it starts (power-on, watchdog; measured < 1 ms)."""
 READY_AFTER_OPEN_S = 2.0
 """Opening the port of an Arduino Nano resets it (DTR): optiboot flashes the LED 3 times and

@@ -78,6 +78,7 @@ static uint8_t heat_ticks;
 static uint8_t cut_startup_ms;   /* ticks since reset until the power-on clear */
 static uint8_t cut_wdt_reset;    /* reset by the watchdog: the cut's trip is reported, not cleared */
 static uint8_t cut_supply_low_ms;
+static uint8_t cut_en_low_ms;
 static uint32_t avcc_q4;         /* running mean of the measured AVcc, mV * 16; 0: none yet */
 
 /* ------------------------------------------------------------------ helpers */
@@ -379,6 +380,7 @@ static uint8_t cmd_clear_faults(void)
     }
     s.flags &= (uint16_t)~((FLAGS_LATCHED | FLAGS_EVENTS) & ~keep);
     cut_supply_low_ms = 0;
+    cut_en_low_ms = 0;
     overcurrent_ms = 0;
     open_wire_ms = 0;
     return keep ? ST_FAULT_ACTIVE : ST_OK;
@@ -699,7 +701,10 @@ static void cut_tick(void)
     }
     s.cut = c;
     set_flag(FLAG_CUT_OPEN, !(c & HAL_CUT_CLOSED));
-    uint8_t unasked = (c & HAL_CUT_TRIPPED) || (s.enabled && !(c & HAL_CUT_CLOSED));
+    /* EN follows D8 within nanoseconds; two ticks of EN low while enabled leave room for a
+     * read-back taken in the same loop pass as the ENABLE */
+    cut_en_low_ms = (s.enabled && !(c & HAL_CUT_CLOSED)) ? (uint8_t)(cut_en_low_ms + 1u) : 0u;
+    uint8_t unasked = (c & HAL_CUT_TRIPPED) || cut_en_low_ms >= 2u;
     if (s.enabled && s.supply_mv < CUT_SUPPLY_MIN_MV) {
         if (++cut_supply_low_ms >= CUT_SUPPLY_MS) {
             unasked = 1;
@@ -849,6 +854,7 @@ void core_init(uint8_t was_watchdog_reset)
     cut_startup_ms = 0;
     cut_wdt_reset = was_watchdog_reset ? 1u : 0u;
     cut_supply_low_ms = 0;
+    cut_en_low_ms = 0;
     measured_r_ohm = 0.0f;
     ref_alpha_q8 = (int32_t)(256.0f * (1.0f - expf(-1000.0f / (float)ELEC_SETPOINT_FILTER_TAU_US)) + 0.5f);
     compliance = 0;

@@ -19,6 +19,7 @@ import pytest
 
 from smabench.drivers import protocol as p
 from smabench.drivers.current_source import CurrentSource
+from smabench.drivers.mock.bench import SIM_BIN, SIM_ELF
 from smabench.drivers.mock.cut import PUMP_TAU_S, PUMP_TRIP_V, PUMPED_V
 from smabench.drivers.mock.firmware import WDT_INTERRUPT_MS, Electrical, MockFirmware
 from smabench.hardware import ELECTRICAL
@@ -179,14 +180,18 @@ def test_avcc_is_measured_and_corrects_the_readings():
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("firmware", ["python", "emulated"])
 @pytest.mark.parametrize("fault,limit_s", [("mosfet-short", COMPARATOR_S),
                                            ("wire-to-ground", COMPARATOR_S),
                                            ("mcu-hang", WATCHDOG_S)])  # fmt: skip
-def test_smabench_mock_fault_shows_the_cut_work(fault, limit_s):
+def test_smabench_mock_fault_shows_the_cut_work(fault, limit_s, firmware):
     """`smabench mock --fault KIND`: a client heats at 1 A, the mock injects the fault and says
     what opened the cut and when (device time); the client sees CUT_TRIP."""
+    if firmware == "emulated" and not (SIM_BIN.is_file() and SIM_ELF.is_file()):
+        pytest.skip("make -C firmware elf sim")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "smabench.cli", "mock", "--control-stdin", "--fault", fault],
+        [sys.executable, "-m", "smabench.cli", "mock", "--control-stdin", "--fault", fault,
+         "--firmware", firmware],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, bufsize=1,
     )  # fmt: skip
     lines: queue.Queue[str] = queue.Queue()

@@ -109,6 +109,7 @@ class EmulatedDriver:
         blank: bool = False,
         thermocouple: bool = False,
         realtime: bool = False,
+        fault: str | None = None,
     ) -> None:
         """``realtime``: the harness at SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed (it
         stands in for a microcontroller: starved by host load, it would fall silent while the
@@ -128,6 +129,8 @@ class EmulatedDriver:
                 )
         self.link = link
         self.couple_s = couple_s
+        self.fault = fault  # injected through the harness's FAULT command (MockBench's fault)
+        self._fault_state = "armed" if fault else "none"
         boot = ["--bootloader", str(BOOTLOADER_HEX)] if bootloader else []
         self.proc = subprocess.Popen(
             [str(SIM_BIN), *boot, "--blank" if blank else str(SIM_ELF)],
@@ -159,6 +162,30 @@ class EmulatedDriver:
         self.proc.stdin.write(line + "\n")
         self.proc.stdin.flush()
 
+    _HARNESS_FAULT = {"mosfet-short": "MOSFET", "wire-to-ground": "GROUND", "mcu-hang": "HANG"}
+    _CAUSES = {1: "sink-comparator", 2: "supply-comparator", 3: "estop", 4: "watchdog"}
+
+    def _fault_step(self, line: str, current_a: float) -> None:
+        """Inject the fault once the current flows; report the cut from the harness's STATE (its
+        fault_ms, trip_ms, off_ms: AVR time)."""
+        f = {k: float(v) for k, _, v in (tok.partition("=") for tok in line.split()[1:])}
+        if self._fault_state == "armed" and current_a * 1000.0 >= FAULT_ARM_MA:
+            self._send(f"FAULT {self._HARNESS_FAULT[self.fault]}")
+            self._fault_state = "injected"
+        elif self._fault_state == "injected" and f.get("fault_ms", -1) >= 0:
+            print(f"fault: {self.fault} at {f['fault_ms']:.1f} ms (AVR time), wire current "
+                  f"{current_a * 1000:.0f} mA", flush=True)
+            self._fault_state = "waiting"
+        elif self._fault_state == "waiting" and f.get("off_ms", -1) >= 0:
+            cause = self._CAUSES.get(int(f["cut_cause"]), "power-on")
+            print(f"cut: opened by the {cause} {f['off_ms'] - f['fault_ms']:.2f} ms after the "
+                  f"{self.fault} (AVR time); wire current now {current_a * 1000:.0f} mA",
+                  flush=True)
+            self._fault_state = "reported" if self.fault == "mcu-hang" else "done"
+        elif self._fault_state == "reported" and f.get("fault", 0) == 0:
+            print(f"mcu: reset by its own watchdog at {f['t_ms']:.0f} ms (AVR time)", flush=True)
+            self._fault_state = "done"
+
     def _couple(self) -> None:
         last_ms: float | None = None
         pattern = re.compile(r"t_ms=(\S+) duty=(\S+) current_a=(\S+)")
@@ -171,6 +198,8 @@ class EmulatedDriver:
             if not m:
                 continue
             t_ms, current_a = float(m.group(1)), float(m.group(3))
+            if self.fault is not None:
+                self._fault_step(m.string, current_a)
             if last_ms is not None and t_ms > last_ms:
                 state = self.link.step((t_ms - last_ms) / 1000.0, current_a)
                 with contextlib.suppress(OSError, ValueError):
@@ -226,13 +255,12 @@ class MockBench:
         adapter's latency timer (16 ms by default on a real one); ``thermocouple``: a MAX31855 on
         the wire reports the plant's wire temperature (the session's ``temperature_C``);
         ``fault``: one of :data:`~smabench.drivers.mock.cut.FAULTS`, injected once the wire
-        current first exceeds :data:`FAULT_ARM_MA` (Python firmware): a shorted MOSFET or a wire
+        current first exceeds :data:`FAULT_ARM_MA` (the emulated firmware: through the
+        harness's FAULT command, timed by the harness): a shorted MOSFET or a wire
         shorted to ground stays; a hung MCU ends with its own watchdog's reset. What the hardware
         cut did is printed on stdout and kept in :attr:`fault_report`."""
         if fault is not None and fault not in FAULTS:
             raise ValueError(f"fault must be one of {', '.join(FAULTS)}, got {fault!r}")
-        if fault is not None and firmware != "python":
-            raise ValueError("--fault needs the Python firmware (the stand-in models the cut)")
         self.fault = fault
         self.fault_ms: float | None = None  # device time the fault began
         self.fault_report: str | None = None
@@ -337,6 +365,7 @@ class MockBench:
                     blank=self.blank,
                     thermocouple=self.thermocouple,
                     realtime=self.realtime,
+                    fault=self.fault,
                 )
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()

@@ -10,13 +10,14 @@
  *   a MOSFET short: the current is V_supply / (loop + wire), no longer the setpoint's; the wire's
  *     low end to ground: the same through the supply, none through the shunt.
  * A hang: the main loop is sent to an endless `rjmp .` written into unused flash below the
- * bootloader; interrupts (the 1 ms tick, the UART, the AVR's own watchdog) go on. */
+ * bootloader, interrupts enabled; they (the 1 ms tick, the UART, the AVR's own watchdog) go on. */
 #include <math.h>
 #include <string.h>
 
 #include "avr_ioport.h"
 #include "cut.h"
 #include "electrical.h"
+#include "sim_core.h"
 #include "sim_irq.h"
 
 #define PUMP_V 3.6
@@ -169,6 +170,11 @@ static void hang(void)
     avr->pc = HANG_ADDR;
     if (avr->state == cpu_Sleeping)
         avr->state = cpu_Running;
+    /* the main loop hangs with interrupts on (the tick, the UART and the AVR's own watchdog go
+     * on), wherever it was sent from (inside cli/sei or an ISR). With interrupts off the AVR's
+     * watchdog in interrupt-then-reset mode would never reach its reset stage (its interrupt
+     * must run first: ATmega328P datasheet, WDTCSR), and only the external watchdog would act */
+    avr_sreg_set(avr, S_I, 1);
 }
 
 int cut_command(const char *cmd, const char *arg, double t_s)

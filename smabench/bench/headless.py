@@ -554,7 +554,7 @@ def add_commands(sub) -> None:
         "--fault",
         choices=["mosfet-short", "wire-to-ground", "mcu-hang"],
         help="inject a fault once the wire current first exceeds 0.5 A and print what the "
-        "hardware cut did (Python firmware)",
+        "hardware cut did and when (device time)",
     )
     s.set_defaults(func=cmd_mock)
 

@@ -447,9 +447,10 @@ static uint32_t measure_current_ua(void)
     uint32_t raw = ((uint32_t)(hal_adc_q4(HAL_ADC_CURRENT) + 8u) *
                     ((uint32_t)ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 >> 4)) >> 8;
     /* the counts are of AVcc, not of the nominal reference: scale by AVcc / nominal (Q15;
-     * raw >> 6 <= 68 750 and the factor <= 36 700: the product fits in 32 bits) */
+     * raw >> 6 <= 68 750 and the factor <= 36 700: the product fits in 32 bits; the low 6 bits
+     * of raw scaled apart, so nothing is truncated away) */
     uint32_t k_q15 = avcc_q4 ? (avcc_q4 << 11) / ELEC_ADC_REF_MV : 32768u;
-    raw = ((raw >> 6) * k_q15) >> 9;
+    raw = (((raw >> 6) * k_q15) >> 9) + (((raw & 63u) * k_q15) >> 15); /* to 1 uA */
     int32_t x = (int32_t)raw - s.cal.offset_ua;
     if (x <= 0) {
         return 0;

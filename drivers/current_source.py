@@ -601,7 +601,9 @@ class CurrentSource:
             self._latest = t
             self.history.append(t)
             subscribers = list(self._subscribers)
-            new_faults = t.flags & ~self._last_fault_flags & ~(p.Flag.ENABLED | p.Flag.LIMIT_ACTIVE)
+            new_faults = t.flags & ~self._last_fault_flags & ~(
+                p.Flag.ENABLED | p.Flag.LIMIT_ACTIVE | p.Flag.CUT_OPEN
+            )
             self._last_fault_flags = int(t.flags)
             self._tel_cond.notify_all()
         text = p.fault_text(new_faults) if new_faults else ""

@@ -42,6 +42,10 @@ HEAT_MAX_TEMPERATURE_RANGE_C = (30.0, 400.0)
 BAUDRATE = 115200  # nominal; the ATmega328P at 16 MHz runs 117 647 baud (U2X, UBRR 16: +2.1 %)
 DEVICE_BAUD = 117_647
 READY_AFTER_RESET_S = 0.005
+CUT_STARTUP_S = 0.005
+"""After a reset the firmware reads the hardware cut back from this long on (CUT_STARTUP_MS in
+proto.h): at power-on it clears the cut's latch then; after a watchdog reset it reports
+CUT_TRIP from then on (PROTOCOL.md "Safety")."""
 """The application listens this long after it starts (power-on, watchdog; measured < 1 ms)."""
 READY_AFTER_OPEN_S = 2.0
 """Opening the port of an Arduino Nano resets it (DTR): optiboot flashes the LED 3 times and
@@ -102,6 +106,8 @@ class Flag(IntFlag):
     VSENSE_FAULT = 0x0800
     CAL_DEFAULT = 0x1000
     DISSIPATION = 0x2000
+    CUT_TRIP = 0x4000  # latched: the hardware cut opened unasked (comparator, watchdog, e-stop)
+    CUT_OPEN = 0x8000  # state: the series switch (eFuse) is open
 
 
 class TcStatus(IntFlag):
@@ -113,7 +119,9 @@ class TcStatus(IntFlag):
     ABSENT = 0x80  # no chip answered
 
 
-LATCHED_FAULTS = Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.OVERTEMP | Flag.ESTOP
+LATCHED_FAULTS = (
+    Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.OVERTEMP | Flag.ESTOP | Flag.CUT_TRIP
+)
 EVENTS = Flag.HOST_TIMEOUT | Flag.WATCHDOG_RESET | Flag.LEASE_EXPIRED
 FAULT_TEXT = {
     Flag.OVERCURRENT: "overcurrent (measured current above limit + 20 % for 5 ms)",
@@ -126,6 +134,8 @@ FAULT_TEXT = {
     Flag.NTC_FAULT: "ambient sensor fault (NTC open or shorted)",
     Flag.TC_FAULT: "thermocouple fault (open, or shorted to GND or VCC)",
     Flag.VSENSE_FAULT: "wire-voltage ADC not answering",
+    Flag.CUT_TRIP: "hardware cut tripped (over-current comparator, external watchdog or e-stop "
+    "opened the supply switch)",
 }
 
 

@@ -281,6 +281,7 @@ def test_command_table_matches_firmware_header():
     for b in p.TcStatus:
         assert defs[f"TC_{b.name}"] == b.value, b
     assert defs["LEASE_DEFAULT_MS"] == round(p.LEASE_DEFAULT_S * 1000)
+    assert defs["CUT_STARTUP_MS"] == round(p.CUT_STARTUP_S * 1000)
 
 
 def test_unit_builders():

@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from smabench.drivers.mock.cut import FAULTS
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.drivers.mock.plant_link import PlantLink
 from smabench.drivers.mock.serial_device import SerialDevice
@@ -51,6 +52,8 @@ BOOTLOADER_HEX = Path(
 SENSOR_MAP = "generic-rs485-laser"
 FIRMWARES = ("python", "emulated")
 PR_SET_PDEATHSIG = 1
+FAULT_ARM_MA = 500.0
+"""An injected fault waits for the wire current to exceed this (mA): the cut has work to do."""
 REALTIME_MAX_SPEED = 5.0
 """Fastest mock speed (device time / wall time) still run real-time with ``realtime``: at 5× a
 mock takes about a third of a core; faster ones take more than a stand-in device should."""
@@ -106,6 +109,7 @@ class EmulatedDriver:
         blank: bool = False,
         thermocouple: bool = False,
         realtime: bool = False,
+        fault: str | None = None,
     ) -> None:
         """``realtime``: the harness at SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed (it
         stands in for a microcontroller: starved by host load, it would fall silent while the
@@ -125,6 +129,8 @@ class EmulatedDriver:
                 )
         self.link = link
         self.couple_s = couple_s
+        self.fault = fault  # injected through the harness's FAULT command (MockBench's fault)
+        self._fault_state = "armed" if fault else "none"
         boot = ["--bootloader", str(BOOTLOADER_HEX)] if bootloader else []
         self.proc = subprocess.Popen(
             [str(SIM_BIN), *boot, "--blank" if blank else str(SIM_ELF)],
@@ -156,6 +162,30 @@ class EmulatedDriver:
         self.proc.stdin.write(line + "\n")
         self.proc.stdin.flush()
 
+    _HARNESS_FAULT = {"mosfet-short": "MOSFET", "wire-to-ground": "GROUND", "mcu-hang": "HANG"}
+    _CAUSES = {1: "sink-comparator", 2: "supply-comparator", 3: "estop", 4: "watchdog"}
+
+    def _fault_step(self, line: str, current_a: float) -> None:
+        """Inject the fault once the current flows; report the cut from the harness's STATE (its
+        fault_ms, trip_ms, off_ms: AVR time)."""
+        f = {k: float(v) for k, _, v in (tok.partition("=") for tok in line.split()[1:])}
+        if self._fault_state == "armed" and current_a * 1000.0 >= FAULT_ARM_MA:
+            self._send(f"FAULT {self._HARNESS_FAULT[self.fault]}")
+            self._fault_state = "injected"
+        elif self._fault_state == "injected" and f.get("fault_ms", -1) >= 0:
+            print(f"fault: {self.fault} at {f['fault_ms']:.1f} ms (AVR time), wire current "
+                  f"{current_a * 1000:.0f} mA", flush=True)
+            self._fault_state = "waiting"
+        elif self._fault_state == "waiting" and f.get("off_ms", -1) >= 0:
+            cause = self._CAUSES.get(int(f["cut_cause"]), "power-on")
+            print(f"cut: opened by the {cause} {f['off_ms'] - f['fault_ms']:.2f} ms after the "
+                  f"{self.fault} (AVR time); wire current now {current_a * 1000:.0f} mA",
+                  flush=True)
+            self._fault_state = "reported" if self.fault == "mcu-hang" else "done"
+        elif self._fault_state == "reported" and f.get("fault", 0) == 0:
+            print(f"mcu: reset by its own watchdog at {f['t_ms']:.0f} ms (AVR time)", flush=True)
+            self._fault_state = "done"
+
     def _couple(self) -> None:
         last_ms: float | None = None
         pattern = re.compile(r"t_ms=(\S+) duty=(\S+) current_a=(\S+)")
@@ -168,6 +198,8 @@ class EmulatedDriver:
             if not m:
                 continue
             t_ms, current_a = float(m.group(1)), float(m.group(3))
+            if self.fault is not None:
+                self._fault_step(m.string, current_a)
             if last_ms is not None and t_ms > last_ms:
                 state = self.link.step((t_ms - last_ms) / 1000.0, current_a)
                 with contextlib.suppress(OSError, ValueError):
@@ -212,6 +244,7 @@ class MockBench:
         adapter_latency_s: float = 0.0,
         thermocouple: bool = False,
         realtime: bool = False,
+        fault: str | None = None,
     ) -> None:
         """``realtime``: at real-time speed (1), the stand-in driver (the Python firmware's thread
         or the simavr harness) at SCHED_FIFO :data:`DEVICE_RT_PRIORITY` where allowed;
@@ -220,7 +253,19 @@ class MockBench:
         ``sensor_map``: the register map the sensor serves (any shipped map or a path);
         ``adapter_latency_s``: every sensor answer held this long, as by an FTDI USB/RS-485
         adapter's latency timer (16 ms by default on a real one); ``thermocouple``: a MAX31855 on
-        the wire reports the plant's wire temperature (the session's ``temperature_C``)."""
+        the wire reports the plant's wire temperature (the session's ``temperature_C``);
+        ``fault``: one of :data:`~smabench.drivers.mock.cut.FAULTS`, injected once the wire
+        current first exceeds :data:`FAULT_ARM_MA` (the emulated firmware: through the
+        harness's FAULT command, timed by the harness): a shorted MOSFET or a wire
+        shorted to ground stays; a hung MCU ends with its own watchdog's reset. What the hardware
+        cut did is printed on stdout and kept in :attr:`fault_report`."""
+        if fault is not None and fault not in FAULTS:
+            raise ValueError(f"fault must be one of {', '.join(FAULTS)}, got {fault!r}")
+        self.fault = fault
+        self.fault_ms: float | None = None  # device time the fault began
+        self.fault_report: str | None = None
+        self._resets_at_fault = 0
+        self._reset_reported = False
         if firmware not in FIRMWARES:
             raise ValueError(f"firmware must be one of {', '.join(FIRMWARES)}, got {firmware!r}")
         if not 0.0 < speed <= 100.0:
@@ -253,7 +298,35 @@ class MockBench:
             resistance_ohm=state.resistance_ohm,
             ambient_c=state.ambient_c,
             wire_temperature_c=state.temperature_c if self.thermocouple else None,
+            fault=self._fault_now(t_ms, dt_s, fw),
         )
+
+    def _fault_now(self, t_ms: float, dt_s: float, fw: MockFirmware) -> str | None:
+        """The injected fault for this step: armed until the current first flows, then on (a hung
+        MCU: until its watchdog has reset it); its outcome reported once the cut opened."""
+        if self.fault is None:
+            return None
+        if self.fault_ms is None:
+            if fw.current_ma < FAULT_ARM_MA:
+                return None
+            self.fault_ms = t_ms - dt_s * 1000.0  # it acts from the start of this step
+            self._resets_at_fault = fw.watchdog_resets
+            print(f"fault: {self.fault} at {self.fault_ms:.0f} ms (device time), wire current "
+                  f"{fw.current_ma:.0f} mA", flush=True)
+        if self.fault_report is None and fw.cut.events:
+            event = fw.cut.events[-1]
+            if event.t_ms >= self.fault_ms:
+                self.fault_report = (
+                    f"cut: opened by the {event.cause} {event.t_ms - self.fault_ms:.0f} ms after "
+                    f"the {self.fault} (device time); wire current now {fw.current_ma:.0f} mA")
+                print(self.fault_report, flush=True)
+        if self.fault == "mcu-hang" and fw.watchdog_resets > self._resets_at_fault:
+            if self.fault_report is not None and not self._reset_reported:
+                self._reset_reported = True
+                print(f"mcu: reset by its own watchdog at {t_ms:.0f} ms (device time)",
+                      flush=True)
+            return None  # the MCU's own watchdog reset it: the loop runs again
+        return self.fault
 
     def _start_socat(self) -> tuple[str, str] | None:
         if not self.rtu or shutil.which("socat") is None:
@@ -292,6 +365,7 @@ class MockBench:
                     blank=self.blank,
                     thermocouple=self.thermocouple,
                     realtime=self.realtime,
+                    fault=self.fault,
                 )
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()

@@ -161,6 +161,9 @@ class CoreState(ctypes.Structure):
         ("heat_c", ctypes.c_uint16),
         ("heat_g", ctypes.c_uint16),
         ("heat_tmax_dc", ctypes.c_uint16),
+        ("avcc_mv", ctypes.c_uint16),
+        ("cut", ctypes.c_uint8),
+        ("cut_armed", ctypes.c_uint8),
     ]
 
 
@@ -169,7 +172,7 @@ class HostIO(ctypes.Structure):
 
     _fields_ = [
         ("millis", ctypes.c_uint32),
-        ("adc_q4", ctypes.c_uint16 * 3),
+        ("adc_q4", ctypes.c_uint16 * 4),
         ("estop", ctypes.c_uint8),
         ("xadc_present", ctypes.c_uint8),
         ("xadc_code", ctypes.c_int16 * 2),
@@ -178,6 +181,10 @@ class HostIO(ctypes.Structure):
         ("pwm_duty", ctypes.c_uint16),
         ("output_enabled", ctypes.c_uint8),
         ("watchdog_feeds", ctypes.c_uint32),
+        ("cut_latch", ctypes.c_uint8),
+        ("cut_hold", ctypes.c_uint8),
+        ("cut_feeds", ctypes.c_uint32),
+        ("cut_clears", ctypes.c_uint32),
     ]
 
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 from smabench.drivers import protocol as p
 from smabench.drivers.mock.corelib import EEPROM_BYTES, Core
+from smabench.drivers.mock.cut import FAULTS, HardwareCut
 from smabench.hardware import ELECTRICAL, LinearSink
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,11 @@ TICK_MS = 1  # core_control_tick() period
 
 _CS = ELECTRICAL["current_sense"]
 _ADC_REF_V = float(_CS["adc_reference_v"])
+_VREF_V = float(_CS["reference_v"])  # the REF3040 on A3
+_LOOP_OHM = ELECTRICAL.loop_resistance_ohm  # supply, leads, fuse, clamps, eFuse, shunt
+_SHUNT_OHM = ELECTRICAL.shunt_ohm
+WDT_INTERRUPT_MS = 32  # the ATmega's own watchdog: interrupt (output off) after 32 ms ...
+WDT_RESET_MS = 64  # ... reset 32 ms later (firmware/avr/hal_avr.c)
 _ADC_FULL_Q4 = 1023 * 16
 _SUPPLY_DIVIDER = float(ELECTRICAL["supply_monitor"]["divider"])
 _NTC = ELECTRICAL["ntc"]
@@ -61,11 +67,17 @@ class Electrical:
     ntc: str = "ok"
     estop: bool = False
     vsense: bool = True
+    avcc_v: float = _ADC_REF_V  # the Nano's AVcc (USB through its diode: 4.65 … 5.0 V)
+    fault: str | None = None  # injected: "mosfet-short", "wire-to-ground", "mcu-hang"
+
+    def __post_init__(self) -> None:
+        if self.fault is not None and self.fault not in FAULTS:
+            raise ValueError(f"unknown fault {self.fault!r}: one of {', '.join(FAULTS)}")
 
 
-def _adc_q4(volts: float) -> int:
+def _adc_q4(volts: float, avcc_v: float = _ADC_REF_V) -> int:
     """Mean ADC reading (1/16 counts) of an input at ``volts`` (10 bits, AVcc reference)."""
-    return min(_ADC_FULL_Q4, max(0, round(volts / _ADC_REF_V * 1024.0 * 16.0)))
+    return min(_ADC_FULL_Q4, max(0, round(volts / avcc_v * 1024.0 * 16.0)))
 
 
 def _int16(x: float) -> int:
@@ -130,7 +142,12 @@ class MockFirmware:
                 raise ValueError(f"EEPROM image of {len(image)} bytes, want {EEPROM_BYTES}")
             self._core.eeprom[:] = image
         self.sink = LinearSink()
+        self.cut = HardwareCut()
         self.current_ma = 0.0  # the wire current now (device side), mA
+        self.shunt_ma = 0.0  # through the shunt (the wire's, unless it is shorted to ground)
+        self.fault_ms: float | None = None  # device time the injected fault began
+        self.hang_ms = 0  # how long the main loop has been hung
+        self.watchdog_resets = 0  # resets by the AVR's own watchdog after a hang
         self.start_ms = float(now_ms)  # device time of the reset
         self.core_ms = math.floor(now_ms)  # the core's hal_millis()
         self.last_tick_ms = float(now_ms)
@@ -183,6 +200,9 @@ class MockFirmware:
         returns what the firmware queued for the host (its ACKs)."""
         out = bytearray()
         view = memoryview(bytes(data))
+        if self._wire.fault == "mcu-hang":  # a hung loop reads nothing: the bytes wait (a reset
+            self._core.rx_push(bytes(view))  # loses them)
+            return b""
         while view or self._core.rx_pending():
             pending = self._core.rx_pending()
             taken = self._core.rx_push(bytes(view)) if view else 0
@@ -204,50 +224,109 @@ class MockFirmware:
         out = bytearray()
         self.last_tick_ms = max(self.last_tick_ms, float(now_ms))
         while self.core_ms + TICK_MS <= now_ms + 1e-9:
+            fault = self._wire.fault
+            if fault is not None and self.fault_ms is None:
+                self.fault_ms = float(self.core_ms)
+            elif fault is None:
+                self.fault_ms = None
             self._sink_step(TICK_MS / 1000.0)
             self.core_ms += TICK_MS
             self._set_inputs(self._wire)
+            if fault == "mcu-hang":
+                self._hung_tick()
+                continue
+            self.hang_ms = 0
             self._core.poll()
             self._core.control_tick()
             self._after_core()
             out += self._core.tx_take()
         return bytes(out)
 
+    def _hung_tick(self) -> None:
+        """The main loop is stuck: no poll, no control tick, no D7 edges. Only the AVR's own
+        watchdog runs (interrupt: output off after 32 ms; reset after 64 ms, then the loop runs
+        again: the hang was a stuck wait that the reset ends)."""
+        self.hang_ms += TICK_MS
+        io = self._core.io
+        if self.hang_ms == WDT_INTERRUPT_MS:
+            io.pwm_duty = 0
+            io.output_enabled = 0
+            self._after_core()
+        if self.hang_ms >= WDT_RESET_MS:
+            log.info("stand-in: the MCU's watchdog resets it after a %d ms hang", self.hang_ms)
+            latch, feeds = io.cut_latch, io.cut_feeds
+            self._core.init(True)
+            io.cut_latch = latch  # the cut's hardware keeps its state through the MCU's reset
+            io.cut_feeds = feeds
+            self.watchdog_resets += 1
+            self.hang_ms = 0
+
+    @property
+    def cut_closed(self) -> bool:
+        """U10 conducts: the MCU enables (D8) and the latch is clear."""
+        io = self._core.io
+        return bool(io.output_enabled) and not io.cut_latch
+
     def _sink_step(self, dt_s: float) -> None:
         wire = self._wire
+        io = self._core.io
         if wire.supply_v is not None:
             self.sink.supply_v = wire.supply_v
-        if not self._core.io.output_enabled:
-            self.current_ma = 0.0
-            return
+        self.cut.feed(io.cut_feeds)
+        self.cut.decay(dt_s)
         r_wire = _OPEN_OHM if wire.open_wire else wire.resistance_ohm
-        self.current_ma = self.sink.step(self._core.io.pwm_duty, r_wire, dt_s) * 1000.0
+        closed = self.cut_closed
+        sink_a = supply_a = 0.0
+        if closed:
+            if wire.fault == "mosfet-short":  # the current no longer follows the setpoint
+                sink_a = supply_a = self.sink.supply_v / (_LOOP_OHM + r_wire)
+            elif wire.fault == "wire-to-ground":  # past the shunt: the sink sees nothing
+                supply_a = self.sink.supply_v / (_LOOP_OHM - _SHUNT_OHM + r_wire)
+            else:
+                sink_a = supply_a = self.sink.step(io.pwm_duty, r_wire, dt_s)
+        cause = self.cut.comparators(sink_a, supply_a, wire.estop)
+        io.cut_hold = 1 if wire.estop or self.cut.pump_low else 0
+        if cause is not None:
+            # the comparators and the eFuse act within microseconds: the fault's current flows
+            # for a negligible part of this millisecond
+            self.cut.record(cause, float(self.core_ms), closed and not io.cut_latch)
+            io.cut_latch = 1
+            sink_a = supply_a = 0.0
+        if not self.cut_closed:
+            sink_a = supply_a = 0.0
+            self.sink.state.pole1_a = self.sink.state.pole2_a = 0.0
+        self.shunt_ma = sink_a * 1000.0
+        self.current_ma = supply_a * 1000.0
 
     def _after_core(self) -> None:
         """The enable line clamps the sink's setpoint at once (the filter's poles too)."""
-        if not self._core.io.output_enabled and (self.current_ma or self.sink.state.pole1_a):
-            self.current_ma = 0.0
+        if not self.cut_closed and (self.current_ma or self.sink.state.pole1_a):
+            self.current_ma = self.shunt_ma = 0.0
             self.sink.state.pole1_a = self.sink.state.pole2_a = 0.0
 
     def _set_inputs(self, wire: Electrical) -> None:
         io = self._core.io
         i_a = self.current_ma / 1000.0
+        avcc = wire.avcc_v
         io.millis = self.core_ms & 0xFFFFFFFF
         # ADC0: the shunt amplifier; the core adds half a count (a code k stands for [k, k+1))
-        q4 = i_a / _CURRENT_A_PER_COUNT * 16.0 - 8.0
+        q4 = self.shunt_ma / 1000.0 / _CURRENT_A_PER_COUNT * 16.0 * (_ADC_REF_V / avcc) - 8.0
         io.adc_q4[0] = min(_ADC_FULL_Q4, max(0, round(q4)))
         supply_v = self.sink.supply_at_terminals_v(i_a)
-        io.adc_q4[1] = _adc_q4(supply_v * _SUPPLY_DIVIDER)
-        slow = (wire.ambient_c, wire.ntc, wire.wire_temperature_c, wire.thermocouple_fault)
+        # A1: the switched supply, after U10 (0 V while the cut is open)
+        io.adc_q4[1] = _adc_q4(supply_v * _SUPPLY_DIVIDER if self.cut_closed else 0.0, avcc)
+        io.adc_q4[3] = max(0, _adc_q4(_VREF_V, avcc) - 8)  # the REF3040; a code k is [k, k+1)
+        slow = (wire.ambient_c, wire.ntc, wire.wire_temperature_c, wire.thermocouple_fault,
+                wire.avcc_v)
         if slow != self._slow:  # the NTC divider and the MAX31855 word change with these only
             self._slow = slow
-            io.adc_q4[2] = _adc_q4(ntc_volts(wire))
+            io.adc_q4[2] = _adc_q4(ntc_volts(wire) * wire.avcc_v / _ADC_REF_V, wire.avcc_v)
             io.tc_word = max31855_word(wire)
         io.estop = 1 if wire.estop else 0
         io.xadc_present = 1 if wire.vsense else 0
         wire_v = supply_v if wire.open_wire else i_a * wire.resistance_ohm
         io.xadc_code[0] = _int16(wire_v / _WIRE_V_PER_LSB)
-        io.xadc_code[1] = _int16(i_a / _SHUNT_A_PER_LSB)
+        io.xadc_code[1] = _int16(self.shunt_ma / 1000.0 / _SHUNT_A_PER_LSB)
         io.tc_bus_ok = 1
 
     # ------------------------------------------------------------------ telemetry

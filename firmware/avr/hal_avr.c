@@ -1,7 +1,7 @@
 /* AVR implementation of hal.h for the reference current driver (firmware/hardware): ATmega328P at
  * 16 MHz on an Arduino Nano. Pins (electrical.toml [pins]): D9 OC1A setpoint PWM, D8 driver
  * enable (driven low = setpoint released; high-Z = clamped, also the reset state), D2 e-stop
- * (INT0, pull-up, the NC contact holds it low), A0 current, A1 supply, A2 NTC, A4/A5 I2C to the
+ * (INT0, pull-up, the NC contact holds it low), A0 current, A1 switched supply, A2 NTC, A3 REF3040, A4/A5 I2C to the
  * ADS1115, D10/D12/D13 SPI to the MAX31855.
  *   UART0    115200 8N1 (U2X, UBRR0 = 16: 117647 baud, +2.1 %), RX and UDRE interrupts, ring
  *            buffers RX 64 / TX 128 bytes.
@@ -14,6 +14,8 @@
  *            sequence of 8 slots: current x6, supply, NTC; sums and counts per channel.
  *   TWI      400 kHz master, polled with bounded waits (ADS1115).
  *   SPI      master, mode 0, 4 MHz, polled with bounded waits (MAX31855).
+ *   Cut      D7 toggled every control tick (external watchdog), D4 LOW pulse clears its latch, D5
+ *            (EN) and D6 (TRIP) read back; ADC3 reads the REF3040 (AVcc measured).
  *   Watchdog interrupt-then-reset, 32 ms + 32 ms: the interrupt turns the output off and leaves
  *            a marker in .noinit, so a watchdog reset is recognised after the reset even when a
  *            bootloader (optiboot) has cleared MCUSR; MCUSR is read and cleared in .init3.
@@ -25,6 +27,7 @@
 #include <avr/wdt.h>
 #include <stdint.h>
 #include <util/atomic.h>
+#include <util/delay.h>
 
 #include "hal.h"
 #include "hal_avr.h"
@@ -274,7 +277,7 @@ static void tick_init(void)
 #define ADMUX_BASE (_BV(REFS0)) /* AVcc reference, right-adjusted */
 static const uint8_t adc_slots[8] = {HAL_ADC_CURRENT, HAL_ADC_CURRENT, HAL_ADC_CURRENT,
                                      HAL_ADC_SUPPLY,  HAL_ADC_CURRENT, HAL_ADC_CURRENT,
-                                     HAL_ADC_CURRENT, HAL_ADC_AMBIENT};
+                                     HAL_ADC_REFERENCE, HAL_ADC_AMBIENT};
 static volatile uint32_t adc_sum[HAL_ADC_CHANNELS]; /* NTC: ~100 conversions per read */
 static volatile uint8_t adc_n[HAL_ADC_CHANNELS];
 static uint16_t adc_last[HAL_ADC_CHANNELS];
@@ -324,7 +327,7 @@ uint16_t hal_adc_q4(uint8_t channel)
 
 static void adc_init(void)
 {
-    DIDR0 = _BV(ADC0D) | _BV(ADC1D) | _BV(ADC2D); /* no digital input buffers on the analog pins */
+    DIDR0 = _BV(ADC0D) | _BV(ADC1D) | _BV(ADC2D) | _BV(ADC3D); /* no digital input buffers on the analog pins */
     adc_slot = 0;
     ADMUX = ADMUX_BASE | adc_slots[0];
     ADCSRA = _BV(ADEN) | _BV(ADIE) | _BV(ADPS2) | _BV(ADPS1) | _BV(ADPS0); /* /128 */
@@ -496,11 +499,46 @@ void hal_avr_watchdog_enable(void)
                          : "r0");
 }
 
+/* ------------------------------------------------------------------ hardware cut (D4-D7) */
+/* D7 feeds the external watchdog (a charge pump: each edge counts), D4 LOW clears the latch U8,
+ * D5 reads U10's EN, D6 the latch. PORTD is written from the main loop only. */
+#define CUT_FEED PD7
+#define CUT_CLEAR PD4
+#define CUT_EN PD5
+#define CUT_TRIP PD6
+
+uint8_t hal_cut_read(void)
+{
+    uint8_t pins = PIND;
+    return (uint8_t)(((pins & _BV(CUT_EN)) ? HAL_CUT_CLOSED : 0u) |
+                     ((pins & _BV(CUT_TRIP)) ? HAL_CUT_TRIPPED : 0u));
+}
+
+void hal_cut_clear(void)
+{
+    PORTD &= (uint8_t)~_BV(CUT_CLEAR);
+    _delay_us(2); /* 74LVC1G74 /CLR pulse width: ns; the pull-up and wiring: 2 us */
+    PORTD |= _BV(CUT_CLEAR);
+    _delay_us(1); /* the latch and the NOR settle before the caller reads D5/D6 back */
+}
+
+void hal_cut_feed(void) { PORTD ^= _BV(CUT_FEED); }
+
+static void cut_init(void)
+{
+    PORTD |= _BV(CUT_CLEAR);                     /* D4 high: no clear */
+    PORTD &= (uint8_t)~_BV(CUT_FEED);
+    DDRD |= _BV(CUT_CLEAR) | _BV(CUT_FEED);
+    DDRD &= (uint8_t)~(_BV(CUT_EN) | _BV(CUT_TRIP)); /* readbacks: driven by the logic, no pull-up */
+    PORTD &= (uint8_t)~(_BV(CUT_EN) | _BV(CUT_TRIP));
+}
+
 /* ------------------------------------------------------------------ init */
 void hal_avr_init(void)
 {
     pwm_init(); /* first: the output pin is driven low and the driver disabled at once */
     estop_init();
+    cut_init();
     uart_init();
     tick_init();
     adc_init();

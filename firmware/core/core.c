@@ -74,6 +74,12 @@ static float heat_r_ohm, heat_g_w_k, heat_dt_over_c;
 static uint32_t heat_i2_sum; /* sum of I^2 over the current model step, mA^2 */
 static uint8_t heat_ticks;
 #define HEAT_STEP_MS 10u
+/* hardware cut */
+static uint8_t cut_startup_ms;   /* ticks since reset until the power-on clear */
+static uint8_t cut_wdt_reset;    /* reset by the watchdog: the cut's trip is reported, not cleared */
+static uint8_t cut_supply_low_ms;
+static uint8_t cut_en_low_ms;
+static uint32_t avcc_q4;         /* running mean of the measured AVcc, mV * 16; 0: none yet */
 
 /* ------------------------------------------------------------------ helpers */
 static uint16_t get_u16(const uint8_t *p)
@@ -362,7 +368,19 @@ static uint8_t cmd_clear_faults(void)
          (s.tc_cdeg != TEMP_NONE && s.tc_cdeg >= (int16_t)(s.heat.tmax_dc * 10u)))) {
         keep |= FLAG_OVERTEMP;
     }
+    if (s.cut_armed && (hal_cut_read() & HAL_CUT_TRIPPED)) {
+        /* the latch is pulsed clear only when no cause the firmware knows of remains; the
+         * hardware refuses too while a comparator holds it (read back) */
+        if (!keep) {
+            hal_cut_clear();
+        }
+        if (keep || (hal_cut_read() & HAL_CUT_TRIPPED)) {
+            keep |= FLAG_CUT_TRIP;
+        }
+    }
     s.flags &= (uint16_t)~((FLAGS_LATCHED | FLAGS_EVENTS) & ~keep);
+    cut_supply_low_ms = 0;
+    cut_en_low_ms = 0;
     overcurrent_ms = 0;
     open_wire_ms = 0;
     return keep ? ST_FAULT_ACTIVE : ST_OK;
@@ -428,6 +446,11 @@ static uint32_t measure_current_ua(void)
     /* + half a count: an ADC code k stands for inputs in [k, k+1) LSB */
     uint32_t raw = ((uint32_t)(hal_adc_q4(HAL_ADC_CURRENT) + 8u) *
                     ((uint32_t)ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 >> 4)) >> 8;
+    /* the counts are of AVcc, not of the nominal reference: scale by AVcc / nominal (Q15;
+     * raw >> 6 <= 68 750 and the factor <= 36 700: the product fits in 32 bits; the low 6 bits
+     * of raw scaled apart, so nothing is truncated away) */
+    uint32_t k_q15 = avcc_q4 ? (avcc_q4 << 11) / ELEC_ADC_REF_MV : 32768u;
+    raw = (((raw >> 6) * k_q15) >> 9) + (((raw & 63u) * k_q15) >> 15); /* to 1 uA */
     int32_t x = (int32_t)raw - s.cal.offset_ua;
     if (x <= 0) {
         return 0;
@@ -437,7 +460,30 @@ static uint32_t measure_current_ua(void)
 
 static uint16_t adc_mv(uint8_t channel)
 {
-    return (uint16_t)(((uint32_t)hal_adc_q4(channel) * ELEC_ADC_REF_MV) >> 14);
+    return (uint16_t)(((uint32_t)hal_adc_q4(channel) * s.avcc_mv) >> 14);
+}
+
+/* AVcc (the USB rail through the Nano's diode, 4.65 ... 5.0 V) from the REF3040 on A3:
+ * counts = VREF / AVcc * 1024, so AVcc = VREF * 1024 * 16 / q4. Implausible: the nominal. */
+static void measure_avcc(void)
+{
+    uint16_t q4 = hal_adc_q4(HAL_ADC_REFERENCE);
+    /* + half a count, as for the current: a code k stands for inputs in [k, k+1) LSB */
+    uint32_t den = (uint32_t)q4 + 8u;
+    uint32_t mv = q4 ? ((uint32_t)ELEC_REFERENCE_MV * 16384u + den / 2u) / den : 0u;
+    if (mv < AVCC_MIN_MV || mv > AVCC_MAX_MV) {
+        avcc_q4 = 0;
+        s.avcc_mv = ELEC_ADC_REF_MV;
+        return;
+    }
+    /* the rail moves slowly: a 64 ms running mean keeps the reading's noise out of every
+     * measurement scaled by it */
+    if (avcc_q4 == 0u) {
+        avcc_q4 = mv << 4;
+    } else {
+        avcc_q4 = avcc_q4 - (avcc_q4 >> 6) + (mv >> 2); /* 64 ms, mV * 16 */
+    }
+    s.avcc_mv = (uint16_t)((avcc_q4 + 8u) >> 4);
 }
 
 /* NTC: plausible ambient or TEMP_NONE (open: ADC near 0 V, shorted: near the reference). */
@@ -445,10 +491,12 @@ static void measure_ambient(void)
 {
     uint16_t mv = adc_mv(HAL_ADC_AMBIENT);
     int16_t out = TEMP_NONE;
-    if (mv >= ELEC_NTC_OPEN_BELOW_MV && mv <= ELEC_NTC_SHORT_ABOVE_MV && mv < ELEC_ADC_REF_MV) {
-        /* NTC on top: R_ntc = R_fixed * (Vref - v) / v */
+    /* ratiometric (the divider hangs from AVcc): thresholds scale with the measured AVcc */
+    uint32_t short_mv = (uint32_t)ELEC_NTC_SHORT_ABOVE_MV * s.avcc_mv / ELEC_ADC_REF_MV;
+    if (mv >= ELEC_NTC_OPEN_BELOW_MV && mv <= short_mv && mv < s.avcc_mv) {
+        /* NTC on top: R_ntc = R_fixed * (AVcc - v) / v */
         float r_rel = (float)ELEC_NTC_FIXED_OHM / (float)ELEC_NTC_R25_OHM *
-                      ((float)ELEC_ADC_REF_MV - (float)mv) / (float)mv;
+                      ((float)s.avcc_mv - (float)mv) / (float)mv;
         float t_c = 1.0f / (1.0f / 298.15f + logf(r_rel) / (float)ELEC_NTC_BETA_K) - 273.15f;
         if (t_c >= NTC_T_MIN_C && t_c <= NTC_T_MAX_C) {
             out = cdeg(t_c);
@@ -630,6 +678,46 @@ static void heat_tick(void)
     }
 }
 
+/* The hardware cut: toggle its watchdog (D7) every tick, clear its latch once after power-on
+ * (the pump starts empty: the cut starts tripped), then read it back every tick. A trip that
+ * nobody asked for latches CUT_TRIP: the latch set (comparator, external watchdog, e-stop), EN
+ * low while the firmware enables (D5), or the switched supply (A1) gone while enabled. */
+static void cut_tick(void)
+{
+    hal_cut_feed();
+    uint8_t c = hal_cut_read();
+    if (!s.cut_armed) {
+        if (++cut_startup_ms < CUT_STARTUP_MS) {
+            return;
+        }
+        s.cut_armed = 1;
+        uint8_t estop = hal_estop_tripped();
+        if (estop) {
+            latch(FLAG_ESTOP);
+        }
+        if (!cut_wdt_reset && !estop) {
+            hal_cut_clear(); /* power-on: the pump is charged now */
+            c = hal_cut_read();
+        }
+    }
+    s.cut = c;
+    set_flag(FLAG_CUT_OPEN, !(c & HAL_CUT_CLOSED));
+    /* EN follows D8 within nanoseconds; two ticks of EN low while enabled leave room for a
+     * read-back taken in the same loop pass as the ENABLE */
+    cut_en_low_ms = (s.enabled && !(c & HAL_CUT_CLOSED)) ? (uint8_t)(cut_en_low_ms + 1u) : 0u;
+    uint8_t unasked = (c & HAL_CUT_TRIPPED) || cut_en_low_ms >= 2u;
+    if (s.enabled && s.supply_mv < CUT_SUPPLY_MIN_MV) {
+        if (++cut_supply_low_ms >= CUT_SUPPLY_MS) {
+            unasked = 1;
+        }
+    } else {
+        cut_supply_low_ms = 0;
+    }
+    if (unasked && !(s.flags & FLAG_CUT_TRIP)) {
+        latch(FLAG_CUT_TRIP);
+    }
+}
+
 /* ------------------------------------------------------------------ control */
 /* One control step: feed-forward plus the PI trim; returns the new duty. The trim's integral is
  * a relative correction of the setpoint path (its divider and PWM level tolerances scale with
@@ -762,6 +850,12 @@ void core_init(uint8_t was_watchdog_reset)
     heat_i2_sum = 0;
     heat_ticks = 0;
     slow_timer = 0; /* NTC and thermocouple after 100 ms, when the ADC has conversions */
+    s.avcc_mv = ELEC_ADC_REF_MV;
+    avcc_q4 = 0;
+    cut_startup_ms = 0;
+    cut_wdt_reset = was_watchdog_reset ? 1u : 0u;
+    cut_supply_low_ms = 0;
+    cut_en_low_ms = 0;
     measured_r_ohm = 0.0f;
     ref_alpha_q8 = (int32_t)(256.0f * (1.0f - expf(-1000.0f / (float)ELEC_SETPOINT_FILTER_TAU_US)) + 0.5f);
     compliance = 0;
@@ -799,6 +893,7 @@ void core_poll(void)
 void core_control_tick(void)
 {
     uint32_t now = hal_millis();
+    measure_avcc();
     uint32_t ua = measure_current_ua();
     s.current_ma = (uint16_t)((ua + 500u) / 1000u > 0xFFFFu ? 0xFFFFu : (ua + 500u) / 1000u);
     s.supply_mv = (uint16_t)(((uint32_t)adc_mv(HAL_ADC_SUPPLY) << 16) /
@@ -810,6 +905,7 @@ void core_control_tick(void)
         measure_thermocouple();
     }
     sink_limits();
+    cut_tick();
 
     if (hal_estop_tripped() && !(s.flags & FLAG_ESTOP)) {
         latch(FLAG_ESTOP);

@@ -78,6 +78,9 @@ typedef struct {
     uint32_t last_rx_ms;     /* hal_millis() of the last valid frame (feeds the host timeout) */
     core_cal_t cal;
     core_heat_t heat;
+    uint16_t avcc_mv;        /* AVcc measured with the REF3040 on A3 (nominal when implausible) */
+    uint8_t cut;             /* last read-back of the hardware cut (HAL_CUT_* bits) */
+    uint8_t cut_armed;       /* the power-on clear of the cut is done: its trips are faults */
 } core_state_t;
 const core_state_t *core_state(void);
 #endif

@@ -11,7 +11,8 @@ enum hal_adc_channel {
     HAL_ADC_CURRENT = 0, /* ADC0: shunt amplifier (fast current path), anti-alias filtered */
     HAL_ADC_SUPPLY = 1,  /* ADC1: wire supply through its divider */
     HAL_ADC_AMBIENT = 2, /* ADC2: ambient NTC divider (NTC on top, fixed resistor to ground) */
-    HAL_ADC_CHANNELS = 3
+    HAL_ADC_REFERENCE = 3, /* ADC3: the REF3040 (ELEC_REFERENCE_MV): measures AVcc */
+    HAL_ADC_CHANNELS = 4
 };
 
 enum hal_xadc_channel {
@@ -52,4 +53,17 @@ void hal_eeprom_read(uint16_t addr, uint8_t *data, uint8_t len);
 void hal_eeprom_write(uint16_t addr, const uint8_t *data, uint8_t len);
 /* Feed the hardware watchdog. */
 void hal_watchdog_feed(void);
+
+/* The hardware cut (firmware/hardware/README.md "The cut"): U10 eFuse in the wire supply, EN =
+ * NOR(D8, TRIP); the latch U8 (TRIP) is set by the LM339 comparators (shunt, supply current,
+ * e-stop, external watchdog) and cleared only by a LOW pulse on D4 while no cause holds it. */
+#define HAL_CUT_CLOSED 0x01u  /* D5: U10's EN is high (the switch conducts) */
+#define HAL_CUT_TRIPPED 0x02u /* D6: the latch U8 is set */
+/* Read back D5 and D6 (HAL_CUT_* bits). */
+uint8_t hal_cut_read(void);
+/* Pulse D4 LOW (>= 1 us): clears the latch unless a comparator still holds it set. */
+void hal_cut_clear(void);
+/* Toggle D7, the external watchdog's feed (a charge pump: it needs >= ~100 Hz of edges). Called
+ * from the main loop only (core_control_tick), never from an interrupt: a hung loop stops it. */
+void hal_cut_feed(void);
 #endif

@@ -46,7 +46,11 @@
 #define FLAG_VSENSE_FAULT 0x0800u  /* state: external ADC (wire voltage) not answering */
 #define FLAG_CAL_DEFAULT 0x1000u   /* state: EEPROM calibration invalid, defaults in use */
 #define FLAG_DISSIPATION 0x2000u   /* state: current reduced to keep the sink's dissipation */
-#define FLAGS_LATCHED (FLAG_OVERCURRENT | FLAG_OPEN_WIRE | FLAG_OVERTEMP | FLAG_ESTOP)
+#define FLAG_CUT_TRIP 0x4000u      /* latched: the hardware cut opened unasked (its latch U8 set by a
+                                      comparator, the external watchdog or the e-stop; or the
+                                      switch or switched supply gone while enabled) */
+#define FLAG_CUT_OPEN 0x8000u      /* state: the series switch U10 is open (D5 reads EN low) */
+#define FLAGS_LATCHED (FLAG_OVERCURRENT | FLAG_OPEN_WIRE | FLAG_OVERTEMP | FLAG_ESTOP | FLAG_CUT_TRIP)
 #define FLAGS_EVENTS (FLAG_HOST_TIMEOUT | FLAG_WATCHDOG_RESET | FLAG_LEASE_EXPIRED)
 
 /* Thermocouple status byte (telemetry offset 28) */
@@ -82,6 +86,11 @@
 #define OPEN_WIRE_SET_MA 100u /* setpoint at least this ... */
 #define OPEN_WIRE_MA 20u     /* ... and measured below this ... */
 #define OPEN_WIRE_MS 50u     /* ... for this long: latch */
+#define CUT_STARTUP_MS 5u    /* after reset: D7 toggles this long (the pump charges), then D4 */
+#define CUT_SUPPLY_MIN_MV 1000u /* switched supply (A1) below this while enabled ... */
+#define CUT_SUPPLY_MS 5u     /* ... for this long (U10's soft start is ~1 ms): the cut opened */
+#define AVCC_MIN_MV 4000u    /* AVcc measured on A3 outside this range: implausible, nominal used */
+#define AVCC_MAX_MV 5600u
 
 /* Calibration (SET_CALIBRATION): gains in Q15 (32768 = 1.0), 0.5 ... 1.5 */
 #define CAL_GAIN_ONE 32768u

@@ -34,6 +34,13 @@ static int16_t xadc_code;
 static uint32_t tc_word;
 static uint8_t eeprom[1024];
 static uint32_t dither;
+static double avcc_mv = ADC_REF_MV;
+static uint8_t cut_latch, cut_held;
+static double cut_pump_v;
+static uint32_t cut_feeds, cut_clears, cut_feeds_seen;
+#define PUMP_V 3.6        /* watchdog hold capacitor pumped by 500 Hz of edges (README "The cut") */
+#define PUMP_TRIP_V 1.63  /* U7D threshold (2 x 0.816 V) */
+#define PUMP_TAU_MS 21.96 /* (RW1 + RW2) * CW2 */
 static double t_us, next_sample_us; /* model time; when the next ADC conversion samples */
 #define PWM_PERIOD_US 64.0          /* 16 MHz / 1024 */
 #define ANTIALIAS_FC_HZ 1592.0      /* 1 kOhm, 100 nF */
@@ -77,6 +84,11 @@ void fake_reset(void)
     xadc_code = 0;
     tc_word = 0xFFFFFFFFu;
     dither = 12345u;
+    avcc_mv = ADC_REF_MV;
+    cut_latch = 1; /* power-on: the pump is empty */
+    cut_held = 0;
+    cut_pump_v = 0.0;
+    cut_feeds = cut_clears = cut_feeds_seen = 0;
 }
 
 void fake_set_millis(uint32_t ms) { now_ms = ms; }
@@ -92,7 +104,7 @@ static double noise(void)
 
 static uint16_t adc_counts(double mv)
 {
-    double c = floor(mv / ADC_REF_MV * 1024.0 + noise());
+    double c = floor(mv / avcc_mv * 1024.0 + noise());
     return (uint16_t)(c < 0.0 ? 0.0 : c > 1023.0 ? 1023.0 : c);
 }
 
@@ -109,15 +121,23 @@ static void sample_adcs(void)
     }
     double amp_a = (i_meas_a + ripple) * sink.adc_gain + sink.adc_offset_ma * 1e-3;
     uint16_t c0 = adc_counts(amp_a / a_per_count / 1024.0 * ADC_REF_MV);
-    double vs = sink.supply_v - i_a * sink.source_ohm;
+    double vs = fake_cut_closed() ? sink.supply_v - i_a * sink.source_ohm : 0.0; /* switched */
     uint16_t c1 = adc_counts(vs * 1000.0 * ELEC_SUPPLY_MONITOR_DIV_Q16 / 65536.0);
-    uint16_t c2 = adc_counts(ntc_mv);
+    uint16_t c2 = adc_counts(ntc_mv * avcc_mv / ADC_REF_MV); /* ratiometric */
+    /* A3 with its own noise source: the other channels' sequence stays as it was */
+    static uint32_t dither3 = 777u;
+    dither3 = dither3 * 1103515245u + 12345u;
+    double n3 = ((double)((dither3 >> 16) & 0x7FFFu) / 32768.0) - 0.5;
+    double r3 = floor(ELEC_REFERENCE_MV / avcc_mv * 1024.0 + n3);
+    uint16_t c3 = (uint16_t)(r3 < 0.0 ? 0.0 : r3 > 1023.0 ? 1023.0 : r3);
     adc_sum[0] += c0;
     adc_sum[1] += c1;
     adc_sum[2] += c2;
+    adc_sum[3] += c3;
     adc_n[0]++;
     adc_n[1]++;
     adc_n[2]++;
+    adc_n[3]++;
 }
 
 static void model_step(double dt_us)
@@ -127,7 +147,7 @@ static void model_step(double dt_us)
     v1 += (duty - v1) * a;
     v2 += (v1 - v2) * a;
     /* the enable line clamps the op-amp's input: off at once, whatever the RC filter holds */
-    double target = out_enabled ? v2 * ELEC_SETPOINT_UA_PER_COUNT_Q8 / 256.0 * 1e-6 * sink.setpoint_gain
+    double target = fake_cut_closed() ? v2 * ELEC_SETPOINT_UA_PER_COUNT_Q8 / 256.0 * 1e-6 * sink.setpoint_gain
                                 : 0.0;
     double rsh = ELEC_SHUNT_MOHM * 1e-3;
     double i_max = sink.open ? 0.0
@@ -145,6 +165,14 @@ static void model_step(double dt_us)
 void fake_advance_ms(uint32_t ms)
 {
     for (uint32_t k = 0; k < ms; k++) {
+        /* the watchdog pump: each D7 edge of the last ms charges it, else it decays */
+        for (; cut_feeds_seen < cut_feeds; cut_feeds_seen++) {
+            cut_pump_v += (PUMP_V - cut_pump_v) * 0.5;
+        }
+        cut_pump_v *= exp(-1.0 / PUMP_TAU_MS);
+        if (cut_pump_v < PUMP_TRIP_V || estop_level || cut_held) {
+            cut_latch = 1;
+        }
         for (int j = 0; j < 20; j++) {
             model_step(SUB_US);
             t_us += SUB_US;
@@ -339,3 +367,36 @@ void hal_eeprom_write(uint16_t addr, const uint8_t *data, uint8_t len)
 }
 
 void hal_watchdog_feed(void) { wdt_feeds++; }
+
+void fake_avcc_mv(double mv) { avcc_mv = mv; }
+void fake_cut_trip(void) { cut_latch = 1; }
+void fake_cut_hold(uint8_t on)
+{
+    cut_held = on;
+    if (on) {
+        cut_latch = 1;
+    }
+}
+uint8_t fake_cut_tripped(void) { return cut_latch; }
+uint8_t fake_cut_closed(void) { return out_enabled && !cut_latch; }
+uint32_t fake_cut_feeds(void) { return cut_feeds; }
+uint32_t fake_cut_clears(void) { return cut_clears; }
+
+uint8_t hal_cut_read(void)
+{
+    return (uint8_t)((fake_cut_closed() ? HAL_CUT_CLOSED : 0u) | (cut_latch ? HAL_CUT_TRIPPED : 0u));
+}
+
+void hal_cut_clear(void)
+{
+    cut_clears++;
+    for (; cut_feeds_seen < cut_feeds; cut_feeds_seen++) { /* edges up to now */
+        cut_pump_v += (PUMP_V - cut_pump_v) * 0.5;
+    }
+    /* /PRE dominates /CLR: a comparator (or the e-stop, or an empty pump) still holding it wins */
+    if (!cut_held && !estop_level && cut_pump_v >= PUMP_TRIP_V) {
+        cut_latch = 0;
+    }
+}
+
+void hal_cut_feed(void) { cut_feeds++; }

@@ -56,4 +56,17 @@ void fake_tc_absent(void);
 void fake_tc_celsius(double c);
 void fake_tc_fault(uint8_t bits);    /* TC_OC / TC_SCG / TC_SCV */
 uint8_t fake_eeprom_byte(uint16_t addr);
+/* AVcc (the ADC's reference; default 5000 mV): ADC0/1 read against it, A3 reads the 4.096 V
+ * REF3040, the NTC divider hangs from it. */
+void fake_avcc_mv(double mv);
+/* The hardware cut: latch U8 (starts set: the watchdog pump is empty at power-on), set by a
+ * comparator (fake_cut_trip), the e-stop level or the pump (D7 edges: charged to 3.6 V, decays
+ * with 22 ms below 1.63 V); cleared by a D4 pulse unless a cause holds it (fake_cut_hold).
+ * The switch conducts while the enable line is on and the latch is clear. */
+void fake_cut_trip(void);
+void fake_cut_hold(uint8_t on);
+uint8_t fake_cut_tripped(void);
+uint8_t fake_cut_closed(void);
+uint32_t fake_cut_feeds(void);  /* D7 toggles */
+uint32_t fake_cut_clears(void); /* D4 pulses */
 #endif

@@ -29,6 +29,7 @@ void host_init(uint8_t was_watchdog_reset)
     tx_head = tx_len = 0;
     io.pwm_duty = 0;
     io.output_enabled = 0;
+    io.cut_latch = 1; /* power-on: the watchdog pump is empty */
     core_init(was_watchdog_reset);
 }
 
@@ -138,3 +139,21 @@ void hal_eeprom_write(uint16_t addr, const uint8_t *data, uint8_t len)
 }
 
 void hal_watchdog_feed(void) { io.watchdog_feeds++; }
+
+/* The cut's logic is combinational (EN = NOR(D8, TRIP)) and the clear acts at once, so both live
+ * here; what sets the latch (comparators, the watchdog pump, the e-stop) is modelled in Python. */
+uint8_t hal_cut_read(void)
+{
+    return (uint8_t)((io.output_enabled && !io.cut_latch ? HAL_CUT_CLOSED : 0u) |
+                     (io.cut_latch ? HAL_CUT_TRIPPED : 0u));
+}
+
+void hal_cut_clear(void)
+{
+    io.cut_clears++;
+    if (!io.cut_hold) {
+        io.cut_latch = 0;
+    }
+}
+
+void hal_cut_feed(void) { io.cut_feeds++; }

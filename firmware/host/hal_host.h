@@ -26,6 +26,11 @@ typedef struct {
     uint16_t pwm_duty;
     uint8_t output_enabled;
     uint32_t watchdog_feeds;
+    /* the hardware cut (Python models its comparators and watchdog pump every tick): */
+    uint8_t cut_latch;   /* in/out: the latch U8 (set by Python, cleared by a D4 pulse) */
+    uint8_t cut_hold;    /* in: a cause holds the latch set (a clear pulse does nothing) */
+    uint32_t cut_feeds;  /* out: D7 toggles */
+    uint32_t cut_clears; /* out: D4 pulses */
 } host_io_t;
 
 host_io_t *host_io(void);

@@ -1330,6 +1330,92 @@ static void test_whole_frames(void)
     fake_tx_ring(0, 0.0);
 }
 
+/* ------------------------------------------------------------------ the hardware cut */
+/* D7 toggles every tick; the power-on clear after CUT_STARTUP_MS; a trip nobody asked for is
+ * CUT_TRIP (latched, output off); CLEAR_FAULTS pulses D4 only when the cause is gone and reports
+ * FAULT_ACTIVE while the hardware holds the latch; a hung loop stops D7 and the pump opens the
+ * cut; after a watchdog reset the trip is reported, not cleared. */
+static void test_cut(void)
+{
+    reset(0);
+    CHECK(fake_cut_tripped() && !fake_cut_closed(), "power-on: the cut starts tripped");
+    ticks(CUT_STARTUP_MS - 1);
+    CHECK(fake_cut_clears() == 0 && fake_cut_feeds() == CUT_STARTUP_MS - 1, "toggling first");
+    tick();
+    CHECK(fake_cut_clears() == 1 && !fake_cut_tripped(), "power-on clear after %u ms", CUT_STARTUP_MS);
+    CHECK(!(st()->flags & FLAG_CUT_TRIP) && (st()->flags & FLAG_CUT_OPEN), "open (disabled), no fault");
+    cmd_limits(2500, 5000);
+    cmd_u16(MSG_SET_LEASE, 5000);
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK, "enable");
+    cmd_u16(MSG_SET_CURRENT, 1000);
+    ticks(30);
+    CHECK(fake_cut_closed() && !(st()->flags & FLAG_CUT_OPEN) && st()->current_ma > 980, "closed, 1 A");
+    /* a comparator trips (e.g. the MOSFET shorted): the switch opens, the firmware latches it */
+    fake_cut_hold(1);
+    tick();
+    CHECK((st()->flags & FLAG_CUT_TRIP) && (st()->flags & FLAG_CUT_OPEN) && !st()->enabled,
+          "unasked trip latched: flags 0x%04x", st()->flags);
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_FAULT_ACTIVE, "enable refused");
+    uint32_t clears = fake_cut_clears();
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_FAULT_ACTIVE && fake_cut_tripped(),
+          "the cause holds the latch: FAULT_ACTIVE");
+    CHECK(fake_cut_clears() == clears + 1, "the pulse was tried (no cause the firmware knows)");
+    fake_cut_hold(0);
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && !fake_cut_tripped(), "cause gone: cleared");
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK, "enable again");
+    cmd_u16(MSG_SET_CURRENT, 1000);
+    ticks(30);
+    CHECK(fake_current_a() > 0.98, "current back");
+    /* the e-stop: the firmware does not even try the pulse while it is pressed */
+    fake_estop(1);
+    tick();
+    CHECK((st()->flags & (FLAG_ESTOP | FLAG_CUT_TRIP)) == (FLAG_ESTOP | FLAG_CUT_TRIP), "e-stop");
+    clears = fake_cut_clears();
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_FAULT_ACTIVE && fake_cut_clears() == clears,
+          "no clear pulse while the e-stop is pressed");
+    fake_estop(0);
+    tick();
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && !fake_cut_tripped(), "released: cleared");
+    /* the loop hangs: no ticks, no D7 edges; the pump opens the cut within 50 ms */
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK, "enable");
+    cmd_u16(MSG_SET_CURRENT, 1000);
+    ticks(30);
+    int ms = 0;
+    while (fake_current_a() > 0.02 && ms < 200) {
+        fake_advance_ms(1);
+        ms++;
+    }
+    printf("hardware cut: MCU hung at 1 A, the external watchdog opened the cut after %d ms\n", ms);
+    CHECK(ms >= 10 && ms <= 50 && fake_cut_tripped(), "external watchdog: %d ms", ms);
+    tick(); /* the loop runs again: it sees the trip */
+    CHECK((st()->flags & FLAG_CUT_TRIP) && !st()->enabled, "reported after the hang");
+    ticks(5); /* the pump recharges */
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK, "clear");
+    /* after a watchdog reset the pump was empty: the trip is reported, not cleared at power-on */
+    reset(1);
+    ticks(CUT_STARTUP_MS + 1);
+    CHECK(fake_cut_clears() == 0 && (st()->flags & FLAG_CUT_TRIP) && (st()->flags & FLAG_WATCHDOG_RESET),
+          "watchdog reset: CUT_TRIP reported, flags 0x%04x", st()->flags);
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && !fake_cut_tripped(), "cleared on request");
+    /* AVcc on a weak USB port: the readings are scaled by the REF3040 on A3 */
+    reset(0);
+    fake_avcc_mv(4650.0);
+    ticks(CUT_STARTUP_MS + 100);
+    cmd_limits(2500, 5000);
+    cmd_u16(MSG_SET_LEASE, 5000);
+    cmd_u8(MSG_ENABLE, 1);
+    cmd_u16(MSG_SET_CURRENT, 1000);
+    ticks(300);
+    printf("AVcc 4.65 V: measured %u mV; 1000 mA asked: wire %.1f mA, read %u mA, supply %u mV\n",
+           st()->avcc_mv, fake_current_a() * 1000.0, st()->current_ma, st()->supply_mv);
+    CHECK(abs((int)st()->avcc_mv - 4650) <= 10, "AVcc measured: %u mV", st()->avcc_mv);
+    CHECK(fabs(st()->current_ma - fake_current_a() * 1000.0) < 5.0, "current read within 5 mA");
+    CHECK(fabs(fake_current_a() - 1.0) < 0.01, "current delivered within 1 %%");
+    CHECK(abs((int)st()->supply_mv - (int)((5.0 - fake_current_a() * 0.06) * 1000.0)) < 30,
+          "supply read: %u mV", st()->supply_mv);
+    fake_avcc_mv(5000.0);
+}
+
 int main(int argc, char **argv)
 {
     test_crc();
@@ -1357,6 +1443,7 @@ int main(int argc, char **argv)
     test_watchdog_flag();
     test_resync();
     test_whole_frames();
+    test_cut();
     if (vec_files_n > 0) test_answers();
     printf("%d checks, %d failures\n", checks, failures);
     return failures ? 1 : 0;

@@ -34,6 +34,7 @@
 
 #include "boot.h" /* --bootloader: the Arduino bootloader and auto-reset */
 #include "periph.h" /* ADS1115, MAX31855, e-stop, NTC faults (periph.c) */
+#include "cut.h"    /* the hardware cut: eFuse, comparators, latch, watchdog pump (cut.c) */
 #include "electrical.h"
 #include "sink.h"     /* the reference linear current sink (sink.c) */
 
@@ -138,8 +139,8 @@ static uint32_t clamp_mv(double mv)
 {
     if (mv < 0.0)
         return 0;
-    if (mv > ADC_VREF_MV)
-        return (uint32_t)ADC_VREF_MV;
+    if (mv > avr->avcc)
+        return avr->avcc;
     return (uint32_t)lround(mv);
 }
 
@@ -147,7 +148,14 @@ static double ntc_mv(double celsius)
 {
     double t = celsius + 273.15;
     double r_ntc = ELEC_NTC_R25_OHM * exp(ELEC_NTC_BETA_K * (1.0 / t - 1.0 / 298.15));
-    return ADC_VREF_MV * ELEC_NTC_FIXED_OHM / (r_ntc + ELEC_NTC_FIXED_OHM);
+    return avr->avcc * ELEC_NTC_FIXED_OHM / (r_ntc + ELEC_NTC_FIXED_OHM); /* from AVcc */
+}
+
+/* AVR time now, s (the harness's clock: it keeps counting across resets) */
+static double avr_now_s(void)
+{
+    uint64_t now = total_cycles + (avr->cycle >= last_cycle ? avr->cycle - last_cycle : avr->cycle);
+    return (double)now / F_CPU;
 }
 
 /* Recompute the ADC inputs when the duty or the model changed (force: always). */
@@ -163,13 +171,26 @@ static void model_update(int force)
     /* the reference linear sink (sink.c): D8 driven low releases the setpoint */
     const uint8_t *d = avr->data;
     int enabled = (d[A_DDRB] & 0x01) && !(d[A_PORTB] & 0x01);
-    uint64_t now = total_cycles + (avr->cycle >= last_cycle ? avr->cycle - last_cycle : avr->cycle);
-    sink_out_t o = sink_update((double)now / F_CPU, duty * PWM_TOP, enabled, r_ohm, wire_open);
-    current_now = o.current_a;
-    periph_set_wire(o.current_a, o.wire_v);
-    avr_raise_irq(adc_irq + ADC_IRQ_ADC0, clamp_mv(o.adc0_mv)); /* shunt amplifier */
-    avr_raise_irq(adc_irq + ADC_IRQ_ADC1, clamp_mv(o.adc1_mv)); /* supply monitor */
+    double t_s = avr_now_s();
+    sink_out_t o = sink_update(t_s, duty * PWM_TOP, enabled, r_ohm, wire_open);
+    /* the cut (cut.c) decides what flows: the sink's current, a fault's, or nothing */
+    double shunt_a;
+    int closed;
+    double wire_a = cut_step(t_s, o.current_a, enabled, periph_estop(), sink_supply(), r_ohm,
+                             &shunt_a, &closed);
+    if (!closed)
+        sink_reset(); /* CLAMP (Q2) holds the setpoint at 0 while the cut is open */
+    current_now = wire_a;
+    double supply_v = sink_supply() - wire_a * ELEC_SOURCE_MOHM * 1e-3;
+    periph_set_wire(shunt_a, wire_open && closed ? supply_v : wire_a * r_ohm);
+    double a_per_count = ELEC_CURRENT_ADC_UA_PER_COUNT_Q8 / 256.0 * 1e-6;
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC0, clamp_mv(shunt_a / a_per_count / 1024.0 * ELEC_ADC_REF_MV));
+    /* A1: the switched supply after U10 */
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC1,
+                  clamp_mv(closed ? supply_v * 1000.0 * ELEC_SUPPLY_MONITOR_DIV_Q16 / 65536.0 : 0.0));
     avr_raise_irq(adc_irq + ADC_IRQ_ADC2, clamp_mv(periph_ntc_mv(ntc_mv(ambient_c))));
+    avr_raise_irq(adc_irq + ADC_IRQ_ADC3, clamp_mv(ELEC_REFERENCE_MV)); /* REF3040 */
+    (void)o;
 }
 
 static void pwm_irq_cb(avr_irq_t *irq, uint32_t value, void *param)
@@ -294,6 +315,8 @@ static void print_state(void)
             total_cycles / (F_CPU / 1000.0), duty_now < 0 ? 0.0 : duty_now, current_now, r_ohm,
             sink_supply());
     periph_state(ctl);
+    cut_state(ctl);
+    fprintf(ctl, " avcc_v=%.3f", avr->avcc / 1000.0);
     fputc('\n', ctl);
     fflush(ctl);
 }
@@ -338,6 +361,16 @@ static void control_line(char *line)
             return;
         }
         sink_set_supply(v);
+        model_update(1);
+    } else if (!strcmp(cmd, "AVCC") && arg) {
+        double v = strtod(arg, &end);
+        if (*end || !isfinite(v) || v < 4.0 || v > 5.5) {
+            fprintf(stderr, "smabench-sim: bad AVcc '%s' (4.0 ... 5.5 V)\n", arg);
+            return;
+        }
+        avr->avcc = avr->aref = (uint32_t)lround(v * 1000.0);
+        model_update(1);
+    } else if (cut_command(cmd, arg, avr_now_s())) {
         model_update(1);
     } else if (periph_command(cmd, arg)) {
         model_update(1);
@@ -497,6 +530,7 @@ int main(int argc, char **argv)
     if (!adc_irq)
         die("no ADC IRQs");
     avr_irq_register_notify(adc_irq + ADC_IRQ_OUT_TRIGGER, adc_trigger_cb, NULL);
+    cut_attach(avr, avr_now_s);
     periph_attach(avr);
     avr_irq_t *pwm = avr_io_getirq(avr, AVR_IOCTL_TIMER_GETIRQ('1'), TIMER_IRQ_OUT_PWM0);
     if (pwm)
@@ -565,6 +599,7 @@ int main(int argc, char **argv)
                     total_cycles / (F_CPU / 1000.0), reset_mcusr,
                     (reset_mcusr & 0x08) ? ": watchdog" : "");
             resets_reported = resets;
+            cut_mcu_reset();
             model_dirty = 1;
             rx_pump_kick(); /* reset cancelled the cycle timers */
         }

@@ -20,6 +20,7 @@
 #include "avr_spi.h"
 #include "avr_twi.h"
 #include "electrical.h"
+#include "cut.h"
 #include "periph.h"
 #include "sim_irq.h"
 
@@ -140,16 +141,15 @@ static void cs_cb(avr_irq_t *irq, uint32_t value, void *param)
 }
 
 /* ------------------------------------------------------------------ e-stop, NTC */
-static avr_irq_t *estop_pin;
 static int estop_tripped;
 
 /* The contact drives D2 whatever the port's pull-up says: simavr's "external" pin state. */
 static void estop_drive(void)
 {
-    avr_ioport_external_t ext = {.name = 'D', .mask = 1u << 2, .value = estop_tripped ? 1u << 2 : 0u};
-    avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('D'), &ext);
-    avr_raise_irq(estop_pin, (uint32_t)estop_tripped);
+    cut_drive_pins(estop_tripped); /* port D's external state: D2 with the cut's D5/D6 */
 }
+
+int periph_estop(void) { return estop_tripped; }
 static int ntc_fault; /* 0 ok, 1 open, 2 short */
 
 double periph_ntc_mv(double model_mv)
@@ -246,6 +246,5 @@ void periph_attach(avr_t *a)
     if (cs)
         avr_irq_register_notify(cs, cs_cb, NULL);
     cs_low = 0;
-    estop_pin = avr_io_getirq(avr, AVR_IOCTL_IOPORT_GETIRQ('D'), 2);
     estop_drive(); /* the NC contact holds D2 low */
 }

@@ -16,6 +16,8 @@ int periph_command(const char *cmd, const char *arg);
 void periph_set_wire(double current_a, double wire_v);
 /* The NTC divider voltage the model computed, overridden by an NTC fault. */
 double periph_ntc_mv(double model_mv);
+/* The e-stop input: 1 = tripped (drives D2 and the cut's comparator U7C). */
+int periph_estop(void);
 /* Extra STATE fields, numbers only: " estop=0 tc=1 tc_c=55.00 ads=1 ntc=0". */
 void periph_state(FILE *f);
 #endif

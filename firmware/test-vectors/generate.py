@@ -110,6 +110,13 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         supply_v=5.05,
         thermocouple_status=p.TcStatus(0),
     ).to_payload()
+    # the hardware cut opened by its comparator (a shorted MOSFET): latched, switch open
+    telemetry_cut = p.Telemetry(
+        t_ms=1234, current_a=0.0, voltage_v=0.0, duty=0.0, ambient_c=22.0,
+        flags=p.Flag.CUT_TRIP | p.Flag.CUT_OPEN, setpoint_a=1.0, crc_errors=0, frame_errors=0,
+        wire_model_c=40.0, thermocouple_c=nan, precise_current_a=0.0, supply_v=0.0,
+        thermocouple_status=p.TcStatus.ABSENT,
+    ).to_payload()  # fmt: skip
     # answers of PROTOCOL.md that are bytes: checked against the core itself (host/test_core.c
     # and, through the stand-in that runs it, tests/test_protocol.py), see README.md
     lease_expired = p.Telemetry(
@@ -224,6 +231,7 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         ("telemetry_faults_saturated", 12, M.TELEMETRY, telemetry_fault),
         ("telemetry_sensors_missing", 21, M.TELEMETRY, telemetry_sensors_missing),
         ("telemetry_latched_overtemp_estop", 22, M.TELEMETRY, telemetry_latched),
+        ("telemetry_cut_trip_open", 23, M.TELEMETRY, telemetry_cut),
         # answers of PROTOCOL.md (README.md: which bytes the core must reproduce)
         ("answer_identify_v1", 0, M.IDENTIFY, cp(M.IDENTIFY, 1)),  # a version-1 host asks
         (

@@ -62,6 +62,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         adapter_latency_s=args.adapter_latency_ms / 1000.0,
         thermocouple=args.thermocouple,
         realtime=True,  # up to REALTIME_MAX_SPEED; the simavr harness too, started before
+        fault=getattr(args, "fault", None),
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -548,6 +549,12 @@ def add_commands(sub) -> None:
     )
     s.add_argument(
         "--blank", action="store_true", help="with --bootloader: no application (flash it first)"
+    )
+    s.add_argument(
+        "--fault",
+        choices=["mosfet-short", "wire-to-ground", "mcu-hang"],
+        help="inject a fault once the wire current first exceeds 0.5 A and print what the "
+        "hardware cut did and when (device time)",
     )
     s.set_defaults(func=cmd_mock)
 

@@ -91,24 +91,11 @@ def headroom(processes: int = 1) -> Headroom:
         used = max(_vm_size_bytes(), CODE_ADDRESS_SPACE_BYTES)
         found.append(Headroom(max(0, soft - used), f"address-space limit {gb(soft)} (ulimit -v), "
                               f"{gb(used)} of it the program's own"))  # fmt: skip
-    cg = _cgroup_free()
-    if cg is not None:
-        found.append(
-            Headroom(
-                cg // processes,
-                f"control group memory limit, {gb(cg)} free"
-                + (f" for {processes} processes" if processes > 1 else ""),
-            )
-        )
-    avail = _mem_available()
-    if avail is not None:
-        found.append(
-            Headroom(
-                avail // processes,
-                f"{gb(avail)} of memory available"
-                + (f" for {processes} processes" if processes > 1 else ""),
-            )
-        )
+    shared_by = f" for {processes} processes" if processes > 1 else ""
+    for free, what in ((_cgroup_free(), "control group memory limit, {} free"),
+                       (_mem_available(), "{} of memory available")):  # fmt: skip
+        if free is not None:  # shared by the processes
+            found.append(Headroom(free // processes, what.format(gb(free)) + shared_by))
     if not found:
         return Headroom(2**62, "no limit known")
     return min(found, key=lambda h: h.bytes_free)

@@ -14,7 +14,6 @@ tests; keep both true.
 from __future__ import annotations
 
 import contextlib
-import fcntl
 import os
 import queue
 import re
@@ -27,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from journeys.harness import Installed, install, shared_dir
+from journeys.harness import Installed, installed_once
 
 START_TIMEOUT_S = 120.0  # the mock's and the run's start-up beside other work on two cores
 END_TIMEOUT_S = 60.0
@@ -42,18 +41,7 @@ _INSTALLED: list[Installed] = []  # the one installed smabench of this run (set 
 def installed(tmp_path_factory: pytest.TempPathFactory) -> Installed:
     """smabench installed from a clean copy of this checkout into a fresh venv, once per test run
     (the journey tests' venv and lock: one install serves both folders and every xdist worker)."""
-    chosen = os.environ.get("SMABENCH_JOURNEY_VENV")
-    shared = shared_dir(tmp_path_factory)
-    venv = Path(chosen) if chosen else shared / "journey-venv"
-    with open(shared / "journey-venv.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # one install; the other workers wait for it
-        if not (venv / ".journey-ok").exists():
-            install(venv, shared / "journey-build")
-    home = shared / "journey-home"
-    home.mkdir(exist_ok=True)
-    inst = Installed(venv=venv, home=home)
-    where = inst.py("import smabench; print(smabench.__file__)", cwd=home).stdout.strip()
-    assert Path(where).resolve().is_relative_to(venv.resolve()), where
+    inst = installed_once(tmp_path_factory)
     _INSTALLED[:] = [inst]
     return inst
 

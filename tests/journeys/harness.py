@@ -170,6 +170,27 @@ class Recordings:
         return folder
 
 
+def installed_once(tmp_path_factory: pytest.TempPathFactory) -> Installed:
+    """smabench installed from a clean copy of this checkout into a fresh venv, once per test
+    run: every xdist worker and both folders that use it (journeys, faults) share it through a
+    lock. ``SMABENCH_JOURNEY_VENV`` names a venv to reuse while developing."""
+    chosen = os.environ.get("SMABENCH_JOURNEY_VENV")
+    shared = shared_dir(tmp_path_factory)
+    venv = Path(chosen) if chosen else shared / "journey-venv"
+    with open(shared / "journey-venv.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # one install; the other workers wait for it
+        if not (venv / ".journey-ok").exists():
+            install(venv, shared / "journey-build")
+    home = shared / "journey-home"
+    home.mkdir(exist_ok=True)
+    inst = Installed(venv=venv, home=home)
+    where = inst.py("import smabench; print(smabench.__file__)", cwd=home).stdout.strip()
+    assert Path(where).resolve().is_relative_to(venv.resolve()), (
+        f"smabench imported from {where}, not from the journey venv"
+    )
+    return inst
+
+
 def cycles_session(recordings: Recordings, load_kg: float, *, thermocouple: bool = False,
                    cycles: int = 4, seed: int = 0) -> Path:  # fmt: skip
     """A nominal heating-cycles session at ``load_kg`` from the mock bench (1.4 A, 5× speed)."""

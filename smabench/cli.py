@@ -607,7 +607,12 @@ def missing_library_hint(exc: ImportError) -> str:
     if name in ("PySide6", "pyqtgraph", "shiboken6"):
         return (f"{name} is missing: pip install 'PySide6-Essentials==6.11.3' pyqtgraph "
                 "(both come with smabench)")  # fmt: skip
-    if ".so" in str(exc):
+    text = str(exc)
+    if "failed to map segment" in text or "cannot allocate memory" in text.lower():
+        return (f"a shared library could not be loaded for lack of memory ({exc}): the memory "
+                "or address space given to this process (ulimit -v, a container's limit) is "
+                "too small")  # fmt: skip
+    if ".so" in text:
         return (f"Qt could not load a system library ({exc}): "
                 f"apt-get install {QT_SYSTEM_PACKAGES}")  # fmt: skip
     return f"cannot import {exc.name or exc}: reinstall smabench (pip install smabench)"

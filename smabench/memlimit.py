@@ -36,14 +36,19 @@ def gb(n_bytes: float) -> str:
     return f"{n_bytes / 1e9:.1f} GB" if n_bytes >= 1e9 else f"{n_bytes / 1e6:.0f} MB"
 
 
-def _vm_size_bytes() -> int:
+def _proc_kb_bytes(path: str, key: str) -> int | None:
+    """A ``key:  N kB`` line of a /proc file in bytes (None when absent or unreadable)."""
     try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmSize:"):
+        for line in Path(path).read_text().splitlines():
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
-    return 0
+    return None
+
+
+def _vm_size_bytes() -> int:
+    return _proc_kb_bytes("/proc/self/status", "VmSize") or 0
 
 
 def _cgroup_free() -> int | None:
@@ -73,13 +78,7 @@ def _cgroup_free() -> int | None:
 
 
 def _mem_available() -> int | None:
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
+    return _proc_kb_bytes("/proc/meminfo", "MemAvailable")
 
 
 def headroom(processes: int = 1) -> Headroom:

@@ -172,9 +172,10 @@ class EmulatedDriver:
         if self._fault_state == "armed" and current_a * 1000.0 >= FAULT_ARM_MA:
             self._send(f"FAULT {self._HARNESS_FAULT[self.fault]}")
             self._fault_state = "injected"
+            self._injected_at_a = current_a  # the current it met (the next STATE is after it)
         elif self._fault_state == "injected" and f.get("fault_ms", -1) >= 0:
             print(f"fault: {self.fault} at {f['fault_ms']:.1f} ms (AVR time), wire current "
-                  f"{current_a * 1000:.0f} mA", flush=True)
+                  f"{self._injected_at_a * 1000:.0f} mA", flush=True)
             self._fault_state = "waiting"
         elif self._fault_state == "waiting" and f.get("off_ms", -1) >= 0:
             cause = self._CAUSES.get(int(f["cut_cause"]), "power-on")

@@ -374,6 +374,12 @@ def test_an_estopped_sessions_record_shows_the_current_reaching_zero_and_the_cha
     folder = win.last_end["folder"]
     # the e-stop (reader thread) and the loop's end write concurrently: order by their times
     events = sorted(read_events(folder), key=lambda e: e["t_host_s"])
+    # the loop's own ENABLE 0 at its end is not the chain's: under load it may come after the
+    # current already fell (a busy loop thread), so it is checked apart
+    ends = [e for e in events
+            if e["event"] == "command_sent" and e["why"].startswith("session end")]  # fmt: skip
+    assert len(ends) == 1, events
+    events = [e for e in events if e is not ends[0]]
     names = [e["event"] for e in events]
     assert names[0] == "estop_input" and names[-1] == "current_below_threshold", names
     assert sorted(names[1:3]) == ["command_sent", "session_end"], names

@@ -438,7 +438,8 @@ class CurrentSource:
     # ------------------------------------------------------------------ state
     @property
     def link_ok(self) -> bool:
-        """Port open, handshake done, and a valid frame received within ``link_timeout_s``."""
+        """Port open, handshake done, and a valid frame received within ``link_timeout_s`` (or
+        bytes waiting: a held-up reader, not a silent device)."""
         return self._link.link_ok
 
     @property

@@ -436,6 +436,8 @@ class FakeSerial:
         self._in = bytearray()
         self._cond = threading.Condition()
         self.fail_next_read = False
+        self.hold = threading.Event()  # set: the reader is held up (a busy host) in read()
+        self.held = threading.Event()  # the reader is being held
 
     def write(self, data: bytes) -> int:
         with self._cond:
@@ -457,6 +459,10 @@ class FakeSerial:
         return len(self._in)
 
     def read(self, n: int = 1) -> bytes:
+        while self.hold.is_set():
+            self.held.set()
+            time.sleep(0.001)
+        self.held.clear()
         with self._cond:
             if self.fail_next_read:
                 self.fail_next_read = False
@@ -480,6 +486,27 @@ class FakeSerial:
 
     def close(self) -> None:
         self.is_open = False
+
+
+def test_link_ok_while_its_reader_is_held_up_with_bytes_waiting():
+    """A host too busy to run the link's owner thread: the device's bytes wait in the port. The
+    link is not lost (the device spoke); it is once nothing waits either."""
+    fake = FakeSerial()
+    cs = CurrentSource(fake, keepalive=False, link_timeout_s=0.1)
+    cs.connect()
+    link = cs._link
+    fake.hold.set()
+    assert fake.held.wait(5.0)
+    with fake._cond:
+        fake._in += fake.fw.receive(p.encode_frame(99, p.MsgType.PING, b""), 0.0)
+    with link._lock:
+        link._last_rx -= 1.0  # the owner thread held for 10× the link timeout
+    assert cs.link_ok
+    with fake._cond:
+        fake._in.clear()  # nothing waiting: silent for a second
+    assert not cs.link_ok
+    fake.hold.clear()
+    cs.close()
 
 
 # (method call, frame the driver must write), seq counting from the connect() frames

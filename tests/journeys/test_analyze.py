@@ -48,20 +48,9 @@ def test_shipped_nominal_samples_come_out_none(installed: Installed, cwd: Path, 
     assert doc["cause"] == "none", (doc["reason"], out)
 
 
-ONE_KG_OPEN = pytest.mark.xfail(
-    strict=False,
-    reason="open, pinned deterministically by tests/test_analysis_nominal.py (strict xfails on a "
-    "stored 1 kg recording): at 1 kg the first cycle, from the room's temperature, peaks near "
-    "Af while the others overshoot it, and in the fold that holds it out the baseline fits a "
-    "non-physical map (ε_mix carrying the stroke) or extrapolates Af; beside two burners 3 of 4 "
-    "fresh 1 kg recordings came out none (one ambient_drift), 2 of 3 in a second try. Not "
-    "strict: which draw fails depends on the machine's timing",
-)
-
-
 @pytest.mark.parametrize(
     ("load_kg", "thermocouple"),
-    [pytest.param(1.0, False, marks=ONE_KG_OPEN), (2.0, True), (2.0, False), (4.0, True)],
+    [(1.0, False), (2.0, True), (2.0, False), (4.0, True)],
 )
 def test_fresh_nominal_recordings_come_out_none(
     installed: Installed, recordings: Recordings, cwd: Path, load_kg: float, thermocouple: bool

@@ -145,7 +145,7 @@ def test_one_place_for_each_fact():
     """The dataclasses' defaults and the choices other modules use are the schema's."""
     import smabench.protocols as protocols
 
-    assert S.CONTROLLER_MODES == MODES
+    assert S.CONTROLLER_MODES is MODES
     assert protocols.PROTOCOL_NAMES is S.PROTOCOL_NAMES
     assert protocols.REFERENCE_NAMES is S.REFERENCE_NAMES
     for f in dataclasses.fields(ProtocolSettings):

@@ -60,10 +60,12 @@ from smabench.control.pid import PID, PIDGains
 from smabench.control.reference import Reference
 from smabench.physics.thermal import thermal_constants
 from smabench.physics.wire import Wire
+from smabench.settings import CONTROLLER_MODES
 
 log = logging.getLogger(__name__)
 
-MODES = ("open_loop", "pid", "ff", "ffpid")
+MODES = CONTROLLER_MODES
+"""The controller's modes: the settings schema's choices (declared there once)."""
 
 
 def parse_switch(text: str) -> tuple[float, str]:

@@ -21,7 +21,7 @@ import numpy as np
 
 from smabench import __version__
 from smabench.argtypes import OUTPUT_HELP, output_file, positive
-from smabench.settings import arg_type
+from smabench.settings import add_setting_option
 
 log = logging.getLogger("smabench")
 
@@ -313,6 +313,8 @@ def cmd_bench_link(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------- parser
+DEMO_CURRENT_WHY = "heats the paper wire through its transformation in a few seconds"
+"""Why ``simulate`` and ``demo`` heat at 1.4 A, not at the run schema's default."""
 COMMANDS = ("import", "fit", "predict", "simulate", "demo", "export", "mock", "run", "gui",
             "analyze", "characterize", "plan", "firmware", "calibrate", "sensor", "bench")
 
@@ -364,12 +366,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         add_fit_commands(sub)
 
     s = sub.add_parser("simulate", help="simulate heating cycles on the plant into a session")
-    s.add_argument("--load-kg", type=arg_type("load_kg"), default=2.0,
-                   help="hanging load, kg (default 2)")
-    s.add_argument("--cycles", type=positive(int), default=5, help="number of cycles (5)")
-    s.add_argument("--current-a", type=arg_type("protocol.current_a"), default=1.4,
-                   help="heating current, A (1.4)")
-    s.add_argument("--heat-s", type=positive(), default=4.0, help="heating time per cycle, s")
+    add_setting_option(s, "--load-kg", "load_kg")
+    add_setting_option(s, "--cycles", "protocol.cycles")
+    add_setting_option(s, "--current-a", "protocol.current_a", 1.4, DEMO_CURRENT_WHY)
+    add_setting_option(s, "--heat-s", "protocol.heat_s", 4.0,
+                       "the paper wire's full stroke at 1.4 A from the room's temperature")
     s.add_argument("--cool-s", type=positive(), default=10.0, help="cooling time per cycle, s")
     s.add_argument(
         "--kind",
@@ -385,10 +386,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         help="switch on a plant effect (repeatable); see --list-effects",
     )
     s.add_argument("--list-effects", action="store_true", help="list the plant effects and exit")
-    s.add_argument("--rate-hz", type=positive(), default=100.0, help="recording rate, Hz (100)")
-    s.add_argument("--noise-mm", type=arg_type("sim.noise_mm"), default=0.002,
-                   help="sensor noise std, mm (0 … 10; 0.002)")
-    s.add_argument("--seed", type=arg_type("sim.seed"), default=0, help="noise seed (0 … 1e9)")
+    add_setting_option(s, "--rate-hz", "rate_hz", 100.0,
+                       "a recording's rate; the loop's own is for control")
+    add_setting_option(s, "--noise-mm", "sim.noise_mm")
+    add_setting_option(s, "--seed", "sim.seed")
     s.add_argument(
         "--wire",
         default="paper",
@@ -401,15 +402,11 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     s = sub.add_parser(
         "demo", help="headless demo: cycles on the mock bench, a session, fits and a loop PNG"
     )
-    s.add_argument("--load-kg", type=arg_type("load_kg"), default=2.0,
-                   help="hanging load, kg (2)")
-    s.add_argument("--cycles", type=positive(int), default=3, help="heating cycles (3)")
-    s.add_argument("--speed", type=arg_type("time_scale"), default=5.0,
-                   help="mock bench speed, × (0.1 … 100; 5)")
-    s.add_argument("--current-a", type=arg_type("protocol.current_a"), default=1.4,
-                   help="heating current, A (1.4)")
-    s.add_argument("--seed", type=arg_type("mock.seed"), default=0,
-                   help="mock bench noise seed (0)")
+    add_setting_option(s, "--load-kg", "load_kg")
+    add_setting_option(s, "--cycles", "protocol.cycles", 3, "a short demo")
+    add_setting_option(s, "--speed", "time_scale", 5.0, "a demo runs ahead of the wall clock")
+    add_setting_option(s, "--current-a", "protocol.current_a", 1.4, DEMO_CURRENT_WHY)
+    add_setting_option(s, "--seed", "mock.seed")
     s.add_argument("--out", default="sessions", help="parent folder (./sessions)")
     s.set_defaults(func=cmd_demo)
 

@@ -944,3 +944,20 @@ def arg_type(key: str) -> Any:
 
     parse.__name__ = s.label
     return parse
+
+
+def add_setting_option(parser: argparse.ArgumentParser, name: str, key: str,
+                       default: Any = None, why: str = "") -> None:  # fmt: skip
+    """``name`` (e.g. ``--current-a``) on a command outside a run's settings (``simulate``,
+    ``demo``): its type, range, unit and help are the setting's (or device option's) ``key``;
+    ``default``: this command's own, when it differs from the schema's, said with ``why``."""
+    s = DEVICE_OPTIONS.get(key) or get(key)
+    if default is None:
+        default, own = s.default, ""
+    else:
+        default, own = s.check(default), f" here{': ' + why if why else ''}"
+    shown = _show(default, s.unit) if s.kind != "choice" else str(default)
+    text = s.help.rstrip(".")
+    bits = [b for b in (s.range_text if s.kind != "choice" else "", f"default {shown}{own}") if b]
+    parser.add_argument(name, type=arg_type(key), default=default, metavar=s.metavar or _metavar(s),
+                        help=f"{text} [{'; '.join(bits)}]".replace("%", "%%"))  # fmt: skip

@@ -23,7 +23,6 @@ import numpy as np
 import pytest
 
 from smabench.bench.headless import MockProcess, open_devices
-from smabench.bench.priority import realtime_loop_thread
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.protocols import ProtocolSettings
 from smabench.sessions import FLAG_SENSOR_INVALID, load_session
@@ -73,9 +72,9 @@ def _settings(tmp_path: Path, sid: str, **proto) -> RunSettings:
 
 
 class _Session:
-    """``run_session`` on its own thread, real-time where allowed as `smabench run` and the
-    GUI's runtime run their loop (it renews the 0.25 s setpoint lease); :meth:`wait_rows` waits
-    until it has recorded rows. ``on_sample`` is called with every row too."""
+    """``run_session`` on its own thread, as every caller has it (its loop real-time where
+    allowed: run_session's own); :meth:`wait_rows` waits until it has recorded rows.
+    ``on_sample`` is called with every row too."""
 
     def __init__(self, settings: RunSettings, source, sensor, devices=None, on_sample=None):
         self.rows = 0
@@ -94,10 +93,11 @@ class _Session:
             self.enough.set()
 
     def _run(self, settings, source, sensor, devices) -> None:
+        self.out["policy_before"] = os.sched_getscheduler(0)
         self.out["folder"], self.out["result"] = run_session(
             settings, source, sensor, devices, on_sample=self._on_sample,
-            on_start=lambda _runtime: realtime_loop_thread(),
         )  # fmt: skip
+        self.out["policy_after"] = os.sched_getscheduler(0)
 
     def result(self, timeout_s: float = 120.0):
         """(folder, result) once the session ended (a generous bound, not a measurement)."""
@@ -110,6 +110,38 @@ class _Session:
         if self.rows < n:
             self.enough.clear()
             assert self.enough.wait(timeout_s), f"only {self.rows} rows in {timeout_s} s"
+
+
+def test_every_callers_loop_runs_real_time_and_is_put_back(tmp_path):
+    """run_session with no help from its caller (as `smabench plan` calls it): the loop thread
+    is SCHED_FIFO while it runs and as before afterwards. Before, only `run` and the GUI's
+    runtime raised it, each on its own; a plan's loop at normal scheduling stalled 0.33 s on
+    a busy CI and its step was stopped by the lease."""
+    if not _can_be_realtime():
+        pytest.skip("no CAP_SYS_NICE: the loop stays at normal scheduling")
+    settings = _settings(tmp_path, "realtime")
+    seen: list[int] = []
+    with MockProcess(["--load-kg", "2"]) as mock:
+        source, sensor = open_devices(mock.ports.driver, mock.ports.sensor_tcp, settings)
+        run = _Session(settings, source, sensor,
+                       on_sample=lambda row: seen.append(os.sched_getscheduler(0)))  # fmt: skip
+        run.wait_rows(20)
+        mock.kill()  # the session ends (driver lost)
+        run.result(30.0)
+        source.close()
+        sensor.close()
+    assert seen and set(seen[:20]) == {os.SCHED_FIFO}, set(seen)
+    assert run.out["policy_before"] == run.out["policy_after"] == os.SCHED_OTHER
+
+
+def _can_be_realtime() -> bool:
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        return False
+    os.sched_setscheduler(0, policy, param)
+    return True
 
 
 def test_killed_mock_ends_session_within_half_a_second(tmp_path):

@@ -83,7 +83,6 @@ def protocol_settings(case: Case) -> ProtocolSettings:
 def run_case(case: Case, speed: float = 5.0, rate_hz: float = 400.0) -> dict:
     """One session on its own mock; returns the figures."""
     from smabench.bench.headless import MockProcess, open_devices
-    from smabench.bench.priority import realtime_thread
     from smabench.bench.session_run import RunSettings, run_session
     from smabench.control import ControllerSettings
     from smabench.sessions import load_session
@@ -109,8 +108,8 @@ def run_case(case: Case, speed: float = 5.0, rate_hz: float = 400.0) -> dict:
         with MockProcess(mock_args) as mock:
             source, sensor = open_devices(mock.ports.driver, mock.ports.sensor_tcp, settings)
             try:
-                with realtime_thread():  # the loop renews the lease, as `smabench run`'s does
-                    folder, result = run_session(settings, source, sensor, command=controller)
+                # (the loop real-time while it runs: run_session's own, then as before)
+                folder, result = run_session(settings, source, sensor, command=controller)
             finally:
                 source.close()
                 sensor.close()

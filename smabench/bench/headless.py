@@ -416,7 +416,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             argtypes.serial_port(args.port)
         except argparse.ArgumentTypeError as exc:
             raise ValueError(f"argument --port: {exc}") from None
-    from smabench.bench.priority import raise_priority, realtime_loop_thread
+    from smabench.bench.priority import raise_priority
 
     raise_priority()  # the control loop (and the mock it starts) before other work
     stress = settings.stress()
@@ -484,9 +484,6 @@ def cmd_run(args: argparse.Namespace) -> int:
             devices,
             on_sample=None if args.quiet else _progress_printer(protocol, total),
             command=protocol,
-            # this thread runs the loop, which renews the setpoint lease (0.25 s): real-time
-            # scheduling where allowed, as the GUI's runtime does
-            on_start=lambda _runtime: realtime_loop_thread(),
         )
     finally:
         for dev in (source, sensor):

@@ -42,7 +42,7 @@ import time
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
-from smabench.bench.priority import raise_priority, realtime_loop_thread, realtime_process
+from smabench.bench.priority import raise_priority, realtime_process
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.drivers.protocol import Flag
 from smabench.protocols import Protocol
@@ -234,8 +234,7 @@ class BenchServer:
             self.runtime = runtime
             if self._estops != estops_before:  # an e-stop came while this start was prepared
                 runtime.estop()
-            realtime_loop_thread()  # this thread runs the loop next
-            ready.set()
+            ready.set()  # this thread runs the loop next (real-time: run_session's own)
 
         def run() -> None:
             try:

@@ -20,6 +20,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
+from smabench.bench.priority import realtime_thread
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
 from smabench.physics.wire import PRESETS
 from smabench.protocols import Protocol, ProtocolSettings
@@ -305,7 +306,11 @@ def run_session(
     reference and the identified model go into ``session.json``) or else their protocol.
     ``on_start(runtime)`` is
     called before the loop starts (to e-stop, stop or switch modes from another thread).
-    """
+
+    The loop runs in the calling thread, real-time (SCHED_FIFO) where allowed, for every caller
+    (``run``, ``plan``, ``bench control``, the GUI's runtime): it renews the driver's setpoint
+    lease, and a busy host must not hold it past that. The thread's scheduling is as before
+    afterwards (a plan rests and computes between its steps)."""
     folder = settings.folder()
     check_session_space(settings)
     if command is None:
@@ -332,7 +337,8 @@ def run_session(
         try:
             if on_start is not None:
                 on_start(runtime)
-            result = runtime.run()
+            with realtime_thread():
+                result = runtime.run()
         finally:
             _close(writer, result, describe)
     return folder, result

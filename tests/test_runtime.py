@@ -591,3 +591,28 @@ def test_rows_after_the_drivers_last_frame_are_flagged_stale_until_the_loss():
     assert not stale[60:100].any()  # frames every 10 ms: live
     late = t > t[100] + 0.06  # the last frame came at most 10 ms before the stall
     assert stale[late].all() and late.sum() >= 30  # none of the rows before the loss looks live
+
+
+def test_normal_thread_lowers_a_real_time_thread_for_a_computation(monkeypatch):
+    """The GUI's runtime builds a controller's model on a real-time thread: lowered to normal
+    scheduling for it, put back after (also on error); a normal thread is left alone."""
+    from smabench.bench import priority
+
+    state = {"policy": priority.os.SCHED_FIFO, "prio": 10}
+    monkeypatch.setattr(priority.os, "sched_getscheduler", lambda pid: state["policy"])
+    monkeypatch.setattr(priority.os, "sched_getparam",
+                        lambda pid: priority.os.sched_param(state["prio"]))  # fmt: skip
+
+    def setsched(pid, policy, param):
+        state["policy"], state["prio"] = policy, param.sched_priority
+
+    monkeypatch.setattr(priority.os, "sched_setscheduler", setsched)
+    with pytest.raises(RuntimeError), priority.normal_thread() as lowered:
+        assert lowered is True
+        assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}
+        raise RuntimeError("model failed")
+    assert state == {"policy": priority.os.SCHED_FIFO, "prio": 10}
+    state.update(policy=priority.os.SCHED_OTHER, prio=0)
+    with priority.normal_thread() as lowered:
+        assert lowered is False
+    assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}

@@ -91,3 +91,26 @@ def realtime_process(priority: int = LOOP_RT_PRIORITY // 2) -> int:
         except (OSError, AttributeError, ValueError) as exc:
             log.info("thread %s stays at normal scheduling (%s)", tid, exc)
     return raised
+
+
+@contextmanager
+def normal_thread() -> Iterator[bool]:
+    """The calling thread at normal scheduling (SCHED_OTHER) while the block runs, then as it
+    was; yields whether it was lowered. For CPU-bound work in a real-time process
+    (:func:`realtime_process`): the GUI's runtime builds a controller's model (seconds of CPU)
+    on its command thread, and a SCHED_FIFO thread computing that long starves the kernel's
+    pty worker on its core (see :func:`raise_priority`): the driver's bytes stop arriving and
+    the link is lost (seen: "device lost" at a PID session's start on a 2-core CI)."""
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    lowered = False
+    if policy != os.SCHED_OTHER:
+        try:
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+            lowered = True
+        except (OSError, AttributeError) as exc:
+            log.info("thread stays at its scheduling (%s)", exc)
+    try:
+        yield lowered
+    finally:
+        if lowered:
+            os.sched_setscheduler(0, policy, param)

@@ -42,7 +42,7 @@ import time
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
-from smabench.bench.priority import raise_priority, realtime_process
+from smabench.bench.priority import normal_thread, raise_priority, realtime_process
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.drivers.protocol import Flag
 from smabench.protocols import Protocol
@@ -212,7 +212,8 @@ class BenchServer:
         settings.validate(device_limit_a=self.source.info.hard_limit_a)
         self.source.clear_faults()
         if settings.controller is not None:  # the controller is the command; no pause
-            self.protocol = settings.build_controller()
+            with normal_thread():  # seconds of CPU: not above the kernel's pty worker
+                self.protocol = settings.build_controller()
             self.command = None
             command = self.protocol
         else:

@@ -451,13 +451,11 @@ def test_bench_priority_lowers_the_nice_value_and_leaves_the_sessions_autogroup(
     assert priority.raise_priority() is False
 
 
-def test_realtime_thread_puts_the_scheduling_back(monkeypatch):
-    """``bench control`` runs each live session's loop real-time and then computes the next
-    case at the scheduling it had: raised inside the block, put back after (also on error);
-    where the system refuses, nothing changes and the block still runs."""
+def fake_scheduler(monkeypatch, policy: int, prio: int) -> dict:
+    """The calling thread's scheduling as a dict the priority helpers read and set."""
     from smabench.bench import priority
 
-    state = {"policy": priority.os.SCHED_OTHER, "prio": 0}
+    state = {"policy": policy, "prio": prio}
     monkeypatch.setattr(priority.os, "sched_getscheduler", lambda pid: state["policy"])
     monkeypatch.setattr(priority.os, "sched_getparam",
                         lambda pid: priority.os.sched_param(state["prio"]))  # fmt: skip
@@ -466,6 +464,16 @@ def test_realtime_thread_puts_the_scheduling_back(monkeypatch):
         state["policy"], state["prio"] = policy, param.sched_priority
 
     monkeypatch.setattr(priority.os, "sched_setscheduler", setsched)
+    return state
+
+
+def test_realtime_thread_puts_the_scheduling_back(monkeypatch):
+    """``bench control`` runs each live session's loop real-time and then computes the next
+    case at the scheduling it had: raised inside the block, put back after (also on error);
+    where the system refuses, nothing changes and the block still runs."""
+    from smabench.bench import priority
+
+    state = fake_scheduler(monkeypatch, priority.os.SCHED_OTHER, 0)
     with pytest.raises(RuntimeError), priority.realtime_thread() as raised:
         assert raised is True
         assert state == {"policy": priority.os.SCHED_FIFO, "prio": priority.LOOP_RT_PRIORITY}
@@ -598,15 +606,7 @@ def test_normal_thread_lowers_a_real_time_thread_for_a_computation(monkeypatch):
     scheduling for it, put back after (also on error); a normal thread is left alone."""
     from smabench.bench import priority
 
-    state = {"policy": priority.os.SCHED_FIFO, "prio": 10}
-    monkeypatch.setattr(priority.os, "sched_getscheduler", lambda pid: state["policy"])
-    monkeypatch.setattr(priority.os, "sched_getparam",
-                        lambda pid: priority.os.sched_param(state["prio"]))  # fmt: skip
-
-    def setsched(pid, policy, param):
-        state["policy"], state["prio"] = policy, param.sched_priority
-
-    monkeypatch.setattr(priority.os, "sched_setscheduler", setsched)
+    state = fake_scheduler(monkeypatch, priority.os.SCHED_FIFO, 10)
     with pytest.raises(RuntimeError), priority.normal_thread() as lowered:
         assert lowered is True
         assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}

@@ -296,6 +296,22 @@ def test_session_with_the_real_firmware_in_simavr(tmp_path):
     assert temp1 - temp0 == pytest.approx(expected - temp0, rel=0.1)
 
 
+@pytest.mark.emulator
+def test_realtime_harness_is_cpu_favoured_but_never_fifo():
+    """The simavr harness computes about 85 % of a core without sleeping: at SCHED_FIFO it
+    starved the pty's kernel worker and the host's threads on its core (5 of 6 emulated sessions
+    aborted beside a second harness and a CPU-bound process). Favoured by nice, where allowed."""
+    from smabench.drivers.mock.bench import HARNESS_NICE, SIM_BIN, SIM_ELF, MockBench
+
+    if not (SIM_BIN.is_file() and SIM_ELF.is_file()):
+        pytest.skip("firmware build missing (`make -C firmware elf sim`)")
+    with MockBench(2.0, firmware="emulated", rtu=False, realtime=True) as bench:
+        pid = bench.emulated.proc.pid
+        assert os.sched_getscheduler(pid) == os.SCHED_OTHER
+        if os.geteuid() == 0:
+            assert os.getpriority(os.PRIO_PROCESS, pid) == HARNESS_NICE
+
+
 def test_link_and_loop_benchmarks_print_figures(run_cli):
     """Short runs of the benchmarks (the figures in the README come from full-length runs)."""
     link = run_cli("bench", "link", "--firmware", "python", "-n", "20", "--telemetry-s", "0.5",

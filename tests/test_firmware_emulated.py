@@ -62,7 +62,7 @@ S = p.Status
 
 class Harness:
     """The simavr harness process: PTY path, stdin control, STATE queries. It stands in for a
-    microcontroller, which host load does not slow: SCHED_FIFO where allowed, as the mock
+    microcontroller, which host load does not slow: CPU-favoured where allowed, as the mock
     bench runs it (:func:`~smabench.drivers.mock.bench.realtime_child`)."""
 
     def __init__(self, *args: str) -> None:

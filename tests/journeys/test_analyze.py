@@ -1,13 +1,14 @@
-"""Journey: record on the mock bench (real transports) → ``smabench analyze``, and a tensile
-tester's raw exports imported as exported → ``smabench analyze``.
+"""Journey: record on the mock bench (real transports) → ``smabench analyze``.
 
 - nominal recordings (the shipped samples, fresh ones at 1, 2 and 4 kg with and without the
   thermocouple, and a copy with a real bench's flaws) come out ``none``: nothing is hidden in
   the mock, so any cause named is a wrong name and ``unexplained`` means our own model misses
   the plant;
-- a hidden effect (``--mock-effect``) comes out under its name;
-- the raw exports (loading ramp and unloading included) come out ``stress_shift`` with a slope
-  within 15 % of the loops' own shift, and the output says what was cut.
+- a hidden effect (``--mock-effect``) comes out under its name.
+
+A tensile tester's raw exports imported as exported → ``smabench analyze`` (``stress_shift``, the
+slope against the loops' own shift, what was cut) is the runnable block of
+``docs/analysis-flexinol-raw.md``, which ``test_docs.py`` runs and checks: walked once, there.
 """
 
 from __future__ import annotations
@@ -23,10 +24,6 @@ from journeys.harness import REPO, Installed, Recordings, cycles_session
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # minutes each on a loaded machine
 
-RAW = Path("/work/shared/data/flexinol-instron-raw")
-if not RAW.is_dir():
-    RAW = REPO.parent / "shared" / "data" / "flexinol-instron-raw"
-RAW_COLUMNS = "t_s,position_mm,skip,temperature_C,skip,stress_MPa"
 CYCLES = 3  # few cycles per recording: the journey's CPU time
 
 
@@ -89,23 +86,3 @@ def test_a_hidden_effect_is_named(installed: Installed, recordings: Recordings, 
     assert doc["cause"] == "latent_heat", (doc["reason"], out)
 
 
-@pytest.mark.timeout(1800)  # 88 000 samples: 61 s of CPU, 373 s wall at load 18
-@pytest.mark.skipif(not RAW.is_dir(), reason="raw Flexinol exports not beside the repo")
-def test_raw_exports_imported_as_exported_name_the_stress_shift(installed: Installed, cwd: Path):
-    folders = []
-    for mpa in (100, 172):
-        out = cwd / f"raw{mpa}"
-        installed.ok(
-            "import", RAW / f"flexinol_isobaric_trained_{mpa}MPa.csv", "--columns", RAW_COLUMNS,
-            "--wire-length-mm", 107.69, "--wire-diameter-mm", 0.381, "--out", out, cwd=cwd,
-        )  # fmt: skip
-        folders.append(out)
-    doc, out = analyze(installed, cwd, *folders, timeout_s=1500.0)
-    assert doc["cause"] == "stress_shift", (doc["reason"], out)
-    fitted = doc["candidates"]["stress_shift"]["parameter"]["stress_rate_mpa_per_k"]["value"]
-    own = doc["loop_shift_check"]["stress_rate_mpa_per_k"]
-    assert 5.0 < own < 15.0, own
-    assert abs(fitted - own) <= 0.15 * own, (fitted, own)
-    for s in doc["sessions"]:  # what was cut is said, in the JSON and on the console
-        assert s["cut"]["loading_rows"] > 0, s
-    assert "loading ramp" in out, out

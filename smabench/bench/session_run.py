@@ -22,6 +22,8 @@ from typing import Any
 
 from smabench.bench.priority import realtime_thread
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
+from smabench.commands import CommandSource
+from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
 from smabench.physics.wire import PRESETS
 from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import (
@@ -292,11 +294,11 @@ def _detach_from_dead_terminal() -> None:
 
 def run_session(
     settings: RunSettings,
-    source: Any,
-    sensor: Any,
+    source: CurrentSourceDevice,
+    sensor: DisplacementDevice,
     devices: dict[str, Any] | None = None,
     on_sample: Callable[[dict], None] | None = None,
-    command: Any = None,
+    command: CommandSource | None = None,
     on_start: Callable[[BenchRuntime], None] | None = None,
 ) -> tuple[Path, RunResult]:
     """Run a validated session on connected devices; returns (folder, result).

@@ -98,7 +98,7 @@ def test_a_hung_mcu_is_cut_by_the_external_watchdog_not_its_own(raw, sim):  # no
     heat(raw, sim, 1.5)
     mark = len(sim.stderr)
     sim.send("FAULT HANG")
-    sim.wait_stderr("watchdog", mark)  # the AVR's own watchdog resets it, later
+    reset = sim.wait_stderr("watchdog", mark)  # the AVR's own watchdog resets it, later
     st = sim.state()
     off_after_ms = st["off_ms"] - st["fault_ms"]
     print(f"\nMCU hang: the external watchdog tripped {st['trip_ms'] - st['fault_ms']:.2f} ms "
@@ -108,7 +108,9 @@ def test_a_hung_mcu_is_cut_by_the_external_watchdog_not_its_own(raw, sim):  # no
     # before the AVR's own watchdog (32 ms), with the firmware's enable line still on: the
     # external watchdog opened the cut, not the MCU
     assert st["trip_ms"] - st["fault_ms"] < AVR_WDT_INTERRUPT_MS and st["d8_at_trip"] == 1
-    # after its reset the firmware reports the watchdog reset and the trip (not cleared)
+    # after its reset (and once it listens) the firmware reports the watchdog reset and the
+    # trip (not cleared)
+    sim.wait_ready_after_reset(reset)
     assert raw.status(*p.set_telemetry(0.005)) == S.OK
     t = raw.telemetry(lambda t: t.flags & F.WATCHDOG_RESET and t.t_ms > p.CUT_STARTUP_S * 1e3,
                       timeout_s=WAIT_S)

@@ -21,6 +21,7 @@ import contextlib
 import math
 import os
 import queue
+import re
 import select
 import subprocess
 import threading
@@ -114,6 +115,15 @@ class Harness:
         while self.state()["t_ms"] < t_ms:
             assert time.monotonic() < deadline, f"the AVR did not reach {t_ms} ms"
             time.sleep(0.001)
+
+    def wait_ready_after_reset(self, line: int) -> None:
+        """Until the firmware listens after the reset reported on stderr line ``line`` (PROTOCOL.md
+        "Readiness after reset": p.READY_AFTER_RESET_S of device time). A frame sent at once
+        after the harness says "reset" can reach the AVR before its UART is on, and is lost as
+        on the real part (seen on a busy host: no ACK)."""
+        m = re.search(r"reset at t=([\d.]+) ms", self.stderr[line])
+        assert m, self.stderr[line]
+        self.wait_device_ms(float(m.group(1)) + p.READY_AFTER_RESET_S * 1e3)
 
     def _expect(self, prefix: str, timeout_s: float) -> str:
         deadline = time.monotonic() + timeout_s
@@ -621,15 +631,17 @@ def test_watchdog_reset_reported_behind_optiboot():
         dev = RawDevice(sim.port_name)  # opening the port resets into optiboot (the auto-reset)
         opened_ms = sim.state()["t_ms"]
         # optiboot's exit: its watchdog reset starts the application
-        mark = sim.wait_stderr("watchdog", mark) + 1
+        exit_line = sim.wait_stderr("watchdog", mark)
+        mark = exit_line + 1
         app_ms = sim.state()["t_ms"]
+        sim.wait_ready_after_reset(exit_line)
         assert dev.status(*p.identify()) == S.OK
         assert dev.status(*p.set_telemetry(0.01)) == S.OK
         first = dev.telemetry(timeout_s=WAIT_S)
         assert not first.flags & F.WATCHDOG_RESET  # optiboot's own watchdog exit is not ours
         # the test build hangs 300 ms after it started: its watchdog interrupt, then the reset;
         # after a watchdog reset optiboot starts the application at once (telemetry off again)
-        sim.wait_stderr("watchdog", mark)
+        sim.wait_ready_after_reset(sim.wait_stderr("watchdog", mark))
         assert dev.status(*p.set_telemetry(0.01)) == S.OK
         after = dev.telemetry(timeout_s=WAIT_S)
         assert after.flags & F.WATCHDOG_RESET, after

@@ -33,7 +33,7 @@ import math
 import threading
 
 from smabench.drivers import protocol as p
-from smabench.drivers.displacement import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
+from smabench.drivers.base import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.physics.effects import Effects
 from smabench.physics.plant import Plant, PlantState

@@ -589,7 +589,7 @@ def one_line(text: str) -> str:
 def device_errors() -> tuple[type[BaseException], ...]:
     """The drivers' errors: the environment, not a bug (imported only when something failed)."""
     from smabench.bench.headless import MockError
-    from smabench.drivers.displacement import SensorError
+    from smabench.drivers.base import SensorError
     from smabench.drivers.link import LinkError
 
     return (LinkError, SensorError, MockError)

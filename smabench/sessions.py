@@ -51,8 +51,8 @@ from typing import IO, Any
 
 import numpy as np
 
-from smabench.drivers.displacement import FLAG_NAMES as SENSOR_FLAG_NAMES
-from smabench.drivers.displacement import FLAGS_INVALID as SENSOR_FLAGS_INVALID
+from smabench.drivers.base import FLAG_NAMES as SENSOR_FLAG_NAMES
+from smabench.drivers.base import FLAGS_INVALID as SENSOR_FLAGS_INVALID
 
 log = logging.getLogger(__name__)
 

@@ -334,7 +334,7 @@ def test_modbus_latency_counts_reads_that_got_no_answer(monkeypatch):
     """On a loaded machine the mock sensor can miss its 0.1 s: the benchmark counts such reads
     (a figure) instead of ending; it still fails when nothing is answered."""
     from smabench.bench import link_bench
-    from smabench.drivers.displacement import SensorTimeout
+    from smabench.drivers.base import SensorTimeout
 
     class Sample:
         ok, error = True, ""

@@ -37,8 +37,12 @@ from dataclasses import dataclass
 import pytest
 
 from smabench.drivers import protocol as p
-from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
-from smabench.drivers.displacement import FLAG_EXCEPTION, FLAGS_INVALID
+from smabench.drivers.base import (
+    FLAG_EXCEPTION,
+    FLAGS_INVALID,
+    CurrentSourceDevice,
+    DisplacementDevice,
+)
 
 IMPLEMENTATIONS = ("sim", "mock", "emulated")
 SETPOINT_A = 0.8

@@ -12,24 +12,26 @@ from pathlib import Path
 
 import pytest
 
-from smabench.drivers.displacement import (
-    DATA_TYPES,
+from smabench.drivers.base import (
     FLAG_EXCEPTION,
     FLAG_FRAMING,
     FLAG_LINK_LOST,
     FLAG_RETRIED,
     FLAG_SENSOR_STATUS,
     FLAG_TIMEOUT,
-    DisplacementSensor,
     Sample,
     SensorException,
     SensorFrameError,
     SensorLinkLost,
-    SensorMapError,
     SensorTimeout,
+    describe_flags,
+)
+from smabench.drivers.displacement import (
+    DATA_TYPES,
+    DisplacementSensor,
+    SensorMapError,
     available_maps,
     decode_registers,
-    describe_flags,
     encode_registers,
     load_map,
     parse_map,

@@ -23,7 +23,7 @@ from smabench.bench.runtime import BenchRuntime
 from smabench.bench.tick import ControlTick, RuntimeConfig
 from smabench.commands import CommandStep
 from smabench.drivers import protocol as p
-from smabench.drivers.displacement import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
+from smabench.drivers.base import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
 from smabench.drivers.sim import SimBench
 from smabench.physics.plant import simulate_plant
 from smabench.protocols import Protocol, ProtocolSettings

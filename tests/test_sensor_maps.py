@@ -12,10 +12,12 @@ import time
 import jsonschema
 import pytest
 
-from smabench.drivers.displacement import (
+from smabench.drivers.base import (
     FLAG_OUT_OF_RANGE,
     FLAG_SENSOR_STATUS,
     FLAGS_INVALID,
+)
+from smabench.drivers.displacement import (
     SCHEMA_PATH,
     DisplacementSensor,
     SensorMapError,

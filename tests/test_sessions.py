@@ -176,7 +176,7 @@ def test_atomic_write_leaves_the_old_file_on_error(tmp_path):
 
 def test_flag_bits_are_defined_once_with_the_format():
     import smabench.sessions as sessions
-    from smabench.drivers.displacement import FLAG_NAMES as SENSOR_BITS
+    from smabench.drivers.base import FLAG_NAMES as SENSOR_BITS
 
     bits = list(sessions.FLAG_NAMES)
     assert len(bits) == len(set(bits)) == len(SENSOR_BITS) + 5

@@ -17,8 +17,9 @@ import numpy as np
 
 from smabench.bench.headless import MockProcess
 from smabench.drivers import protocol as p
+from smabench.drivers.base import SensorTimeout
 from smabench.drivers.current_source import CurrentSource
-from smabench.drivers.displacement import DisplacementSensor, SensorTimeout
+from smabench.drivers.displacement import DisplacementSensor
 
 log = logging.getLogger(__name__)
 

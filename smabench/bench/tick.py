@@ -41,8 +41,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from smabench.commands import CommandSource, CommandStep, ObservingCommandSource
-from smabench.drivers.base import Sample, Telemetry
-from smabench.drivers.displacement import FLAG_SENSOR_STATUS
+from smabench.drivers.base import FLAG_SENSOR_STATUS, Sample, Telemetry
 from smabench.drivers.protocol import Flag
 from smabench.physics.thermal import TemperatureEstimator
 from smabench.physics.wire import PAPER_WIRE, Wire
@@ -55,7 +54,7 @@ from smabench.sessions import (
     FLAGS_POSITION_INVALID,
     SENSOR_FLAGS_MASK,
 )
-from smabench.settings import check_current_limit, check_value
+from smabench.settings import check_current_limit, check_value, default
 
 log = logging.getLogger(__name__)
 
@@ -95,9 +94,9 @@ class RuntimeConfig:
     slow loops), so the default 1 mm never trips on the wire's own motion.
     """
 
-    rate_hz: float = 200.0
-    current_limit_a: float = 2.0
-    temperature_limit_c: float = 160.0
+    rate_hz: float = default("rate_hz")  # defaults and ranges of the operator's settings:
+    current_limit_a: float = default("current_limit_a")  # smabench.settings, declared once
+    temperature_limit_c: float = default("temperature_limit_c")
     position_min_mm: float = -math.inf
     position_max_mm: float = math.inf
     link_timeout_s: float = 0.25  # driver telemetry silent this long: abort (safe < 0.5 s)
@@ -106,7 +105,7 @@ class RuntimeConfig:
     max_duration_s: float = math.inf
     ambient_c: float = 22.0
     wire: Wire = PAPER_WIRE
-    time_scale: float = 1.0  # device time / wall time: > 1 only against a mock run faster
+    time_scale: float = default("time_scale")  # device time / wall time (> 1: a faster mock)
     max_jump_mm: float = 1.0  # broken wire: position jump between two valid samples, mm
 
     def validate(self) -> None:

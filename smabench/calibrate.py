@@ -1,5 +1,6 @@
 """Calibration from the app: ``smabench calibrate current|wire|show`` and ``smabench sensor
-tare|read``, and the ``calibration`` block of every session's ``session.json``.
+tare|read`` (the ``calibration`` block of every session's ``session.json``:
+:mod:`smabench.calibration_store`).
 
 - **current**: the driver steps through a few currents (0.2, 1.0, 2.0 A by default), each held
   while the operator reads a multimeter in series with the wire (or given up front with
@@ -16,36 +17,40 @@ tare|read``, and the ``calibration`` block of every session's ``session.json``.
 - **sensor tare**: the displacement sensor read for a second; the mean is the zero that
   positions are reported against (``smabench sensor read``) and that sessions record.
 
-Results live in a small JSON file (:func:`store_path`: ``--calibration FILE``, else
-``$SMABENCH_CALIBRATION``, else ``$XDG_CONFIG_HOME/smabench/calibration.json``, else
-``~/.config/smabench/calibration.json``). Units: A, V, Ω, mm, s, °C.
+Results live in a small JSON file (:mod:`smabench.calibration_store`, :func:`store_path`:
+``--calibration FILE``, else ``$SMABENCH_CALIBRATION``, else
+``$XDG_CONFIG_HOME/smabench/calibration.json``, else ``~/.config/smabench/calibration.json``).
+Units: A, V, Ω, mm, s, °C.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import logging
 import math
-import os
 import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from smabench.argtypes import positive, sensor_map, sensor_spec, serial_port
+from smabench.calibration_store import (  # the store and the session's block: a lower floor
+    ENV_STORE,
+    CalibrationError,
+    _same_calibration,
+    load_store,
+    save_record,
+    store_path,
+)
 from smabench.drivers import protocol as p
 
 log = logging.getLogger(__name__)
 
-ENV_STORE = "SMABENCH_CALIBRATION"
-STORE_VERSION = 1
 EXIT_REFUSED = 2
 
 DEFAULT_CURRENTS_A = (0.2, 1.0, 2.0)
@@ -67,51 +72,8 @@ TARE_MIN_SAMPLES = 5
 TARE_MAX_STD_MM = 0.02  # a tare over a moving position is refused
 
 
-class CalibrationError(ValueError):
-    """A calibration refused: one line for the operator, exit code 2, nothing written."""
-
-
 def _now_iso() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%S%z")
-
-
-# ---------------------------------------------------------------------------- the store
-def store_path(path: str | Path | None = None) -> Path:
-    """Where calibration results are kept: ``path``, ``$SMABENCH_CALIBRATION``, the user's
-    config folder (``$XDG_CONFIG_HOME`` or ``~/.config``) ``/smabench/calibration.json``."""
-    if path:
-        return Path(path).expanduser()
-    if os.environ.get(ENV_STORE):
-        return Path(os.environ[ENV_STORE]).expanduser()
-    base = os.environ.get("XDG_CONFIG_HOME") or Path.home() / ".config"
-    return Path(base) / "smabench" / "calibration.json"
-
-
-def load_store(path: str | Path | None = None) -> dict[str, Any]:
-    """The stored results (``{}`` when there is no file); CalibrationError when it is broken."""
-    where = store_path(path)
-    try:
-        text = where.read_text()
-    except FileNotFoundError:
-        return {}
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise CalibrationError(f"calibration file {where} is not valid JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise CalibrationError(f"calibration file {where} does not hold a JSON object")
-    return data
-
-
-def save_record(key: str, record: dict[str, Any], path: str | Path | None = None) -> Path:
-    """Put ``record`` under ``key`` (``current``, ``wire``, ``sensor_tare``), atomically."""
-    from smabench.sessions import atomic_write_json
-
-    where = store_path(path)
-    data = load_store(where)
-    data["version"] = STORE_VERSION
-    data[key] = record
-    return atomic_write_json(where, data)
 
 
 # ---------------------------------------------------------------------------- holding a current
@@ -401,11 +363,6 @@ class CurrentCalibration:
     meter_a: tuple[float, ...]
 
 
-def _same_calibration(a: p.Calibration, b: p.Calibration) -> bool:
-    """Equal as the device stores them (1 µA, Q15 gains)."""
-    return a.to_data() == b.to_data()
-
-
 def calibrate_current(
     cs: Any,
     set_a: Sequence[float],
@@ -630,52 +587,6 @@ def read_positions(sensor: Any, duration_s: float = TARE_DURATION_S) -> Position
     return PositionStats(float(arr.mean()), float(arr.std()), n, invalid, duration_s)
 
 
-# ---------------------------------------------------------------------------- session metadata
-def session_block(source: Any, path: str | Path | None = None) -> dict[str, Any]:
-    """The ``calibration`` block of ``session.json``: the current driver's calibration as read
-    back from the device at connect (``source.calibration``) with when it was written (from
-    the store, when it matches), the wire's cold resistance and the sensor tare from the
-    store. Never raises: a broken store is logged and left out."""
-    where = store_path(path)
-    try:
-        store = load_store(where)
-    except (CalibrationError, OSError) as exc:
-        log.warning("calibration store left out of the session: %s", exc)
-        store = {}
-    cal = getattr(source, "calibration", None)
-    current = None
-    if isinstance(cal, p.Calibration):
-        rec = store.get("current") or {}
-        written = None
-        try:
-            stored = p.Calibration(
-                rec["offset_a"], rec["gain"], rec.get("voltage_gain", cal.voltage_gain)
-            )
-            if _same_calibration(stored, cal):
-                written = rec.get("written_at")
-        except (KeyError, TypeError, ValueError):
-            pass
-        latest = source.latest() if hasattr(source, "latest") else None
-        if latest is None and hasattr(source, "wait_telemetry"):
-            # just connected on a busy host: the first frame (10 ms period) may not be in yet
-            with contextlib.suppress(Exception):  # none within 1 s: unknown (null)
-                latest = source.wait_telemetry(timeout_s=1.0)
-        current = {
-            "current_offset_a": cal.current_offset_a,
-            "current_gain": cal.current_gain,
-            "voltage_gain": cal.voltage_gain,
-            # CAL_DEFAULT: the calibration or the heat model in EEPROM invalid, defaults in use
-            "eeprom_defaults": None if latest is None else bool(latest.flags & p.Flag.CAL_DEFAULT),
-            "written_at": written,  # null: not written by `smabench calibrate` with this store
-        }
-    return {
-        "store": str(where),
-        "current_driver": current,
-        "wire": store.get("wire"),
-        "sensor_tare": store.get("sensor_tare"),
-    }
-
-
 # ---------------------------------------------------------------------------- CLI
 def _float_list(text: str, what: str) -> list[float]:
     try:
@@ -884,7 +795,8 @@ def cmd_calibrate_show(args: argparse.Namespace, *, out: Any = None) -> int:
 
 
 def _open_sensor(args: argparse.Namespace) -> Any:
-    from smabench.drivers.displacement import DisplacementSensor, SensorError
+    from smabench.drivers.base import SensorError
+    from smabench.drivers.displacement import DisplacementSensor
 
     try:
         sensor = DisplacementSensor(args.sensor_map, args.sensor)
@@ -1054,7 +966,7 @@ def add_commands(sub: Any) -> None:
 
 def _run(fn: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
     """One line on stderr and exit 2 for a refusal (the CLI does the same for ValueError)."""
-    from smabench.drivers.displacement import SensorError
+    from smabench.drivers.base import SensorError
     from smabench.drivers.link import LinkError
 
     try:

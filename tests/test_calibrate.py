@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 from smabench import calibrate as cal
+from smabench import calibration_store
 from smabench.cli import main
 from smabench.drivers import protocol as p
 from smabench.drivers.current_source import CommandRejected, CurrentSource
@@ -453,7 +454,7 @@ def test_session_json_carries_the_calibration(bench, store, tmp_path, capsys):
 
 def test_session_block_without_a_store_or_a_calibration(store):
     """A source that never read its calibration (a simulated driver) and no store yet."""
-    block = cal.session_block(object())
+    block = calibration_store.session_block(object())
     assert block == {
         "store": str(store), "current_driver": None, "wire": None, "sensor_tare": None,
     }  # fmt: skip
@@ -469,9 +470,10 @@ def test_session_block_written_at_only_when_the_device_holds_what_was_written(st
         def latest(self):
             return None
 
-    assert cal.session_block(Source())["current_driver"]["written_at"] == "2026-01-01T00:00:00+0000"
+    block = calibration_store.session_block(Source())
+    assert block["current_driver"]["written_at"] == "2026-01-01T00:00:00+0000"
     Source.calibration = p.Calibration(0.002, 1.01)  # changed by something else since
-    assert cal.session_block(Source())["current_driver"]["written_at"] is None
+    assert calibration_store.session_block(Source())["current_driver"]["written_at"] is None
 
 
 # ----------------------------------------------------------------------------- emulated firmware

@@ -9,6 +9,7 @@ setting gets a clear error and nothing is sent. The session folder is created wi
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -18,10 +19,11 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from smabench.bench.priority import realtime_thread
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
+from smabench.calibration_store import session_block
 from smabench.commands import CommandSource
 from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
 from smabench.physics.wire import PRESETS
@@ -42,6 +44,9 @@ from smabench.settings import (
     to_mapping,
 )
 
+if TYPE_CHECKING:  # imported where used: the controller's modules are heavy
+    from smabench.control.factory import ControllerSettings
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -52,14 +57,6 @@ __all__ = [
     "run_session",
     "session_meta",
 ]
-
-_TOP_LEVEL = (
-    "load_kg", "rate_hz", "wire_preset", "current_limit_a", "temperature_limit_c",
-    "position_min_mm", "position_max_mm", "max_duration_s", "out_dir", "session_id",
-    "time_scale", "max_load_kg", "long_life_stress_mpa", "allow_high_stress",
-)  # fmt: skip
-"""RunSettings' own fields, each a setting of :mod:`smabench.settings` under the same key."""
-
 
 @dataclass
 class RunSettings:
@@ -78,7 +75,7 @@ class RunSettings:
     out_dir: Path = Path(default("out_dir"))
     session_id: str | None = default("session_id")
     time_scale: float = default("time_scale")  # > 1 only against a mock run faster than real
-    controller: Any = None  # smabench.control.ControllerSettings: closed loop on a reference
+    controller: ControllerSettings | None = None  # closed loop on a reference
     max_load_kg: float = default("max_load_kg")
     long_life_stress_mpa: float | None = default("long_life_stress_mpa")  # None: the wire's
     allow_high_stress: bool = default("allow_high_stress")
@@ -164,6 +161,11 @@ class RunSettings:
         return Path(self.out_dir) / sid
 
 
+_TOP_LEVEL = tuple(f.name for f in dataclasses.fields(RunSettings) if f.name in SETTINGS)
+"""RunSettings' own fields that are settings of :mod:`smabench.settings` (under the same key):
+derived, so a new field with a setting's name is carried without another list to edit."""
+
+
 def session_meta(
     settings: RunSettings,
     devices: dict[str, Any],
@@ -171,7 +173,7 @@ def session_meta(
     calibration: dict | None = None,
 ) -> dict[str, Any]:
     """``session.json`` content at the start of a run (session contract, DESIGN §3);
-    ``calibration``: :func:`smabench.calibrate.session_block`."""
+    ``calibration``: :func:`smabench.calibration_store.session_block`."""
     wire = PRESETS[settings.wire_preset]
     proto = asdict(settings.protocol)
     proto["levels_a"] = list(proto["levels_a"])
@@ -322,7 +324,6 @@ def run_session(
             else Protocol(settings.protocol)
         )
     describe = getattr(command, "describe", None)
-    from smabench.calibrate import session_block
 
     writer = SessionWriter(
         folder,

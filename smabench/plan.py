@@ -2,10 +2,12 @@
 
 A plan file has a ``[plan]`` table (name, wire, loop rate, limits, where the sessions go) and
 ``[[step]]`` tables (protocol, load, cycles, currents, times, a rest after). :data:`PLAN_SCHEMA`
-and :data:`STEP_SCHEMA` declare every key (type, range, unit, help); anything else is refused
-with the key named. ``smabench plan run PLAN --dry-run`` prints each step's duration (an upper
-bound: cooling until its timeout), peak current, predicted peak wire temperature (the plant's
-heat balance, every cooling at its shortest) and Joule energy in the wire, and checks every
+and :data:`STEP_SCHEMA` list every key; a key that is a run setting is that setting
+(:func:`setting_key`: type, range, unit, default and help from :mod:`smabench.settings`), the
+plan's own (name, retries, rest) are declared here; anything else is refused with the key
+named. ``smabench plan run PLAN --dry-run`` prints each step's duration (an upper bound:
+cooling until its timeout), peak current, predicted peak wire temperature (the plant's heat
+balance, every cooling at its shortest) and Joule energy in the wire, and checks every
 step against the limits exactly as ``smabench run`` would (nothing is opened); a step whose
 predicted peak exceeds ``temperature_limit_c`` or that may outlast ``max_step_s`` is refused.
 
@@ -40,6 +42,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from smabench import settings
 from smabench.sessions import META_FILE, atomic_write_json, close_dead_session, write_meta
 
 log = logging.getLogger(__name__)
@@ -54,7 +57,9 @@ losses only. Every other abort (interlock, safety trip, e-stop) ends the plan.""
 
 @dataclass(frozen=True)
 class Key:
-    """One declared key: Python type, range (inclusive), unit, help; ``required`` or default."""
+    """One declared key: Python type, range (inclusive), unit, help; ``required`` or default.
+    With ``setting``, a run setting's key (:data:`smabench.settings.SETTINGS`): its type, help,
+    unit and default come from there and its range is checked there (:func:`setting_key`)."""
 
     type: type
     help: str
@@ -64,37 +69,48 @@ class Key:
     default: Any = None
     required: bool = False
     choices: tuple[str, ...] | None = None
+    setting: str | None = None
+
+
+_KIND_TYPES: dict[str, type] = {"float": float, "int": int, "bool": bool, "choice": str,
+                                "text": str}  # fmt: skip
+
+
+def setting_key(key: str, *, required: bool = False,
+                choices: tuple[str, ...] | None = None) -> Key:  # fmt: skip
+    """The plan key that is the run setting ``key``: declared once, in :mod:`smabench.settings`
+    (a plan step runs as ``smabench run`` would, so it takes what ``run`` takes: the plan's own
+    ranges had let a dry run pass 10⁶ cycles that the step's session then refused)."""
+    s = settings.get(key)
+    return Key(_KIND_TYPES[s.kind], s.help, s.unit, default=None if required else s.default,
+               required=required, choices=choices, setting=key)  # fmt: skip
 
 
 PLAN_SCHEMA: dict[str, Key] = {
     "name": Key(str, "plan name (folder of its sessions)", required=True),
-    "wire": Key(str, "wire preset", default="paper"),
-    "rate_hz": Key(float, "loop rate", "Hz", 10.0, 2000.0, default=200.0),
-    "current_limit_a": Key(float, "interlock current", "A", 0.05, 2.5, default=2.0),
-    "temperature_limit_c": Key(float, "interlock on the estimate", "°C", 40.0, 250.0,
-                               default=160.0),  # fmt: skip
-    "max_step_s": Key(float, "abort a step after", "s", 1.0, 7 * 86400.0, default=3600.0),
-    "allow_high_stress": Key(bool, "loads above the wire's long-life stress", default=False),
-    "out": Key(str, "parent folder of the plan's folder", default="sessions"),
-    "mock_speed": Key(float, "mock bench speed with --mock", "×", 0.1, 100.0, default=1.0),
+    "wire": setting_key("wire_preset"),
+    "rate_hz": setting_key("rate_hz"),
+    "current_limit_a": setting_key("current_limit_a"),
+    "temperature_limit_c": setting_key("temperature_limit_c"),
+    "max_step_s": setting_key("max_duration_s"),
+    "allow_high_stress": setting_key("allow_high_stress"),
+    "out": setting_key("out_dir"),
+    "mock_speed": setting_key("time_scale"),
     "retries": Key(int, "times a step that lost a device link (never a safety trip or an "
                    "interlock) is run again unattended, as a new session", "", 0, 10, default=1),
 }
 STEP_SCHEMA: dict[str, Key] = {
     "name": Key(str, "step name (unique in the plan)", required=True),
-    "protocol": Key(str, "open-loop protocol", required=True, choices=PLAN_PROTOCOLS),
-    "load_kg": Key(float, "hanging load", "kg", 0.01, 10.0, required=True),
-    "cycles": Key(int, "heating cycles", "", 1, 1_000_000, default=5),
-    "current_a": Key(float, "heating current", "A", 0.01, 2.5, default=1.0),
-    "heat_s": Key(float, "heating time per cycle", "s", 0.05, 600.0, default=3.0),
-    "cool_timeout_s": Key(float, "longest cooling per cycle", "s", 0.1, 3600.0, default=15.0),
-    "min_cool_s": Key(float, "shortest cooling before settling may end it (a wire still hot "
-                      "above Ms does not move, so it looks settled)", "s", 0.0, 3600.0,
-                      default=3.0),  # fmt: skip
-    "partial_cool_s": Key(float, "incomplete: cooling before reheating", "s", 0.05, 600.0,
-                          default=2.0),  # fmt: skip
-    "inner_heat_s": Key(float, "inner: pulse heating", "s", 0.01, 60.0, default=0.4),
-    "inner_cool_s": Key(float, "inner: pulse cooling", "s", 0.01, 60.0, default=0.8),
+    "protocol": setting_key("protocol.name", required=True, choices=PLAN_PROTOCOLS),
+    "load_kg": setting_key("load_kg", required=True),
+    "cycles": setting_key("protocol.cycles"),
+    "current_a": setting_key("protocol.current_a"),
+    "heat_s": setting_key("protocol.heat_s"),
+    "cool_timeout_s": setting_key("protocol.cool_timeout_s"),
+    "min_cool_s": setting_key("protocol.min_cool_s"),
+    "partial_cool_s": setting_key("protocol.partial_cool_s"),
+    "inner_heat_s": setting_key("protocol.inner_heat_s"),
+    "inner_cool_s": setting_key("protocol.inner_cool_s"),
     "rest_s": Key(float, "rest with the output off after the step", "s", 0.0, 86400.0,
                   default=0.0),  # fmt: skip
 }
@@ -126,6 +142,11 @@ def _check_table(table: dict[str, Any], schema: dict[str, Key], where: str) -> d
         if key.low is not None and not (key.low <= v <= key.high):
             raise PlanError(f"{where}: {name} = {v} is out of range [{key.low:g}, {key.high:g}] "
                             f"{key.unit}".rstrip())  # fmt: skip
+        if key.setting is not None:
+            try:
+                v = settings.check_value(key.setting, v)
+            except settings.SettingError as exc:
+                raise PlanError(f"{where}: {exc.naming(name)}") from None
         out[name] = v
     return out
 

@@ -86,7 +86,10 @@ def test_dry_run_budget_numbers(tmp_path):
 @pytest.mark.parametrize(
     ("edit", "match"),
     [
-        (("cycles = 2", "cycles = 0"), r"step 1: cycles = 0 is out of range \[1, 1e\+06\]"),
+        (("cycles = 2", "cycles = 0"), r"step 1: cycles must be in 1 … 10000, got 0 \(cycles\)"),
+        # smabench run's range, not one of the plan's own (it let 10⁶ through to the session)
+        (("cycles = 2", "cycles = 20000"), r"step 1: cycles must be in 1 … 10000"),
+        (("heat_s = 2.0", "heat_s = 0.0"), r"heat time must be in \(0, 600\] s.*\(heat_s\)"),
         (("current_a = 1.5", "current_a = 1.5\ncurrant = 1"), "step 2: unknown key.*currant"),
         (('name = "b"', 'name = "a"'), "step names must be unique"),
         (('protocol = "inner"', 'protocol = "sine"'), "protocol 'sine' is not one of"),

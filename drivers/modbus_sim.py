@@ -291,6 +291,7 @@ class SensorServer:
             await srv.serve_forever(background=True)
             self.tcp_port = srv.transport.sockets[0].getsockname()[1]
         if self.serial_port is not None:
+            self._check_serial_port()
             device = SimDevice(self.unit_id, simdata=list(simdata), action=self._action)
             line = self.sensor_map.line
             srv = ModbusSerialServer(
@@ -300,6 +301,17 @@ class SensorServer:
             )
             self._servers.append(srv)
             await srv.serve_forever(background=True)
+
+    def _check_serial_port(self) -> None:
+        """Open and close the RTU port as pymodbus will (exclusively): pymodbus turns an OSError
+        there into "Could not start listen, please check address." and logs the cause at a level
+        nobody sees; this raises it with its errno (seen once on a busy CI, cause unknown)."""
+        import serial
+
+        try:
+            serial.serial_for_url(self.serial_port, exclusive=True, baudrate=self.baudrate).close()
+        except (OSError, serial.SerialException) as exc:
+            raise OSError(f"RTU port {self.serial_port}: {exc}") from exc
 
     async def _shutdown(self) -> None:
         for srv in self._servers:

@@ -395,6 +395,13 @@ def calibrate_current(
                 raise CalibrationError(
                     f"the output went off at {current:g} A: {held.measurement().faults}"
                 )
+            if held.timed_out:  # a meter read now reads no current: do not blame the meter
+                raise CalibrationError(
+                    f"the output went off at its hold limit ({held.max_hold_s:.1f} s at "
+                    f"{current:g} A: the device's heat budget or --max-hold-s) before "
+                    f"{settle_s:g} s settling and {average_s:g} s of readings were in: shorten "
+                    "--settle-s/--average-s or let the wire cool; nothing written"
+                )
             reading = float(meter(k, current, held))
             check_readings(set_a[: k + 1], [*meter_a, reading])
         m = held.measurement()

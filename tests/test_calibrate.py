@@ -293,6 +293,29 @@ def test_a_reading_off_by_more_than_20_percent_stops_the_steps(bench, store, cap
     assert not store.exists()
 
 
+def test_a_hold_that_ends_before_the_readings_are_in_is_said_not_blamed_on_the_meter(
+    bench, store
+):
+    """--max-hold-s shorter than settling + averaging: the output goes off before the meter is
+    asked for; a meter read then shows no current. Said as the hold limit (it used to ask the
+    meter anyway and refuse its 0 A as "more than 20 % off"), nothing written."""
+    port = bench.ports.driver
+    asked: list[float] = []
+
+    def operator(prompt: str) -> str:
+        asked.append(_physical_a(bench))
+        return f"{asked[-1]:.4f}"
+
+    args = _parse(["calibrate", "current", "--port", port, "--max-hold-s", "0.1",
+                   "--settle-s", "0.3", "--average-s", "0.3"])  # fmt: skip
+    said = r"hold limit \(0\.1 s at 0\.2 A.*nothing written"
+    with pytest.raises(cal.CalibrationError, match=said):
+        cal.cmd_calibrate_current(args, input_fn=operator)
+    assert asked == []  # the meter was never asked for while nothing flowed
+    assert bench.device.call(lambda fw: fw.enabled) is False
+    assert not store.exists()
+
+
 def test_a_current_the_heat_budget_cannot_hold_is_refused(bench, store, capsys):
     """A heat model that trips 2 A within 0.5 s: refused before 2 A is switched on."""
     port = bench.ports.driver

@@ -130,26 +130,16 @@ def test_a_cause_hidden_under_the_wires_kinetics_is_named_on_top_of_them(tmp_pat
     assert not doc["candidates"]["convection_nonlinear"]["significant"]  # not over the baseline
 
 
-DRIFT_ON_TOP_OPEN = pytest.mark.xfail(
-    strict=True,
-    reason="open since TAU_STARTS (the baseline's shape screens from its two best thermal time "
-    "constants, which took the nominal mock sessions' folds out of a non-physical τ ≈ 1 s basin): "
-    "this draw's folds start elsewhere and a room drift of −7.6 ± 4.2 K/h is named on top of the "
-    "phase resistance at p = 0.0021 against α/3 = 0.0033 (before: not named). A rule naming a "
-    "cause on top only when its size is 2 σ from 0 was tried and dropped: the true latent heat "
-    "on top of a stress shift (test_analysis) stands at 1.9 σ",
-)
-
-
 @pytest.mark.parametrize(("effect", "seed", "want"),
-                         [pytest.param("phase_resistance", 8416, ["phase_resistance"],
-                                       marks=DRIFT_ON_TOP_OPEN),
+                         [("phase_resistance", 8416, ["phase_resistance"]),
                           ("none", 47639, [])], ids=["drift-on-top", "lag-on-none"])  # fmt: skip
 def test_no_cause_is_added_that_is_not_there(tmp_path, effect, seed, want):
     """Two wrong names a second sweep (seed 1) found: a room drift of −4 … −11 K/h added on top
     of a large phase resistance at p = 0.006 (a cause on top is now tested at α / the number
     tried there), and a sensor lag named on a no-effect session where the kinetic rival's fit
-    had stalled in one fold (it now also starts from the sensor fit's solution)."""
+    had stalled in one fold (it now also starts from the sensor fit's solution). The drift on
+    top came back with TAU_STARTS and went with TRAINING_ONLY (the first cycle trains every
+    fold)."""
     effects = {}
     if effect != "none":
         lo, hi = CASES[effect][:2]

@@ -61,8 +61,9 @@ def test_fresh_nominal_recordings_come_out_none(
     strict=True,
     reason="open: the flawed copy starts 0.8 s into the first heating (partial first cycle); the "
     "analysis's heat balance starts the wire at the room's temperature, fully martensitic, so "
-    "the first cycle is mispredicted (baseline held-out 0.41 mm): the start state must be "
-    "fitted from the first samples",
+    "the first cycle is mispredicted (baseline held-out 0.41 mm; 0.17 mm since that cycle only "
+    "trains, TRAINING_ONLY: it still bends every fold's fit): the start state must be fitted "
+    "from the first samples",
 )
 def test_flawed_nominal_recording_is_masked_and_comes_out_none(
     installed: Installed, recordings: Recordings, cwd: Path, tmp_path: Path

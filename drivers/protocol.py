@@ -18,7 +18,7 @@ import struct
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3  # 3: SET_CALIBRATION carries the wire-voltage offset
 MAX_PAYLOAD = 60
 MIN_PACKET = 4  # seq, type, CRC
 MAX_PACKET = MAX_PAYLOAD + 4  # 64
@@ -371,9 +371,10 @@ COMMANDS: dict[MsgType, Command] = {
         Command(MsgType.SET_LEASE, "<H", ("lease_ms",), "setpoint lease 20 … 5000 ms"),
         Command(
             MsgType.SET_CALIBRATION,
-            "<hHH",
-            ("current_offset_ua", "current_gain_q15", "voltage_gain_q15"),
-            "calibration into EEPROM; gains 0.5 … 1.5 (Q15); refused while enabled",
+            "<hHHh",
+            ("current_offset_ua", "current_gain_q15", "voltage_gain_q15", "voltage_offset_uv"),
+            "calibration into EEPROM; gains 0.5 … 1.5 (Q15), wire-voltage offset ±32.767 mV (µV); "
+            "refused while enabled",
         ),
         Command(MsgType.GET_CALIBRATION, "<", (), "reply data: the SET_CALIBRATION payload"),
         Command(
@@ -483,26 +484,33 @@ class Calibration:
     """Calibration constants kept in the device's EEPROM.
 
     The fast-path current is ``(raw − current_offset_a) · current_gain`` (the gain also scales
-    the precise shunt channel); the Kelvin wire voltage is ``raw · voltage_gain``."""
+    the precise shunt channel); the Kelvin wire voltage is ``(raw − voltage_offset_v) ·
+    voltage_gain`` (the offset referred to the wire: the difference amplifier's, measured by
+    ``smabench calibrate wire`` at two currents)."""
 
     current_offset_a: float = 0.0  # A, −0.032767 … 0.032767 (sent in µA)
     current_gain: float = 1.0  # 0.5 … 1.5 (sent in Q15)
     voltage_gain: float = 1.0  # 0.5 … 1.5 (sent in Q15)
+    voltage_offset_v: float = 0.0  # V, −0.032767 … 0.032767 (sent in µV; protocol 3)
 
     def to_data(self) -> bytes:
         offset_ua = round(self.current_offset_a * 1e6)
         if not -32767 <= offset_ua <= 32767:
             raise ValueError(f"current offset {self.current_offset_a} A outside ±0.032767 A")
+        offset_uv = round(self.voltage_offset_v * 1e6)
+        if not -32767 <= offset_uv <= 32767:
+            raise ValueError(f"wire-voltage offset {self.voltage_offset_v} V outside ±0.032767 V")
         return COMMANDS[MsgType.SET_CALIBRATION].pack(
             offset_ua,
             _q15(self.current_gain, "current gain"),
             _q15(self.voltage_gain, "voltage gain"),
+            offset_uv,
         )
 
     @classmethod
     def from_data(cls, data: bytes) -> Calibration:
-        offset_ua, ig, vg = COMMANDS[MsgType.SET_CALIBRATION].unpack(bytes(data))
-        return cls(offset_ua / 1e6, ig / CAL_GAIN_ONE, vg / CAL_GAIN_ONE)
+        offset_ua, ig, vg, offset_uv = COMMANDS[MsgType.SET_CALIBRATION].unpack(bytes(data))
+        return cls(offset_ua / 1e6, ig / CAL_GAIN_ONE, vg / CAL_GAIN_ONE, offset_uv / 1e6)
 
 
 @dataclass(frozen=True)

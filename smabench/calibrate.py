@@ -26,6 +26,7 @@ Units: A, V, Ω, mm, s, °C.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import math
@@ -66,6 +67,8 @@ HEAT_BUDGET_MARGIN = 0.7  # hold at most 70 % of the time the device's energy bu
 AMBIENT_FALLBACK_C = 40.0  # the firmware's ambient for its heat model when the NTC is faulty
 GAIN_RANGE = p.CAL_GAIN_RANGE
 OFFSET_MAX_A = 0.032767
+VOLTAGE_OFFSET_MAX_V = 0.032767  # the wire-voltage offset the device stores (±32767 µV)
+WIRE_FIT_FRACTION = 0.5  # the wire's offset fit: a hold at this fraction of the current, then at it
 TARE_DURATION_S = 1.0
 TARE_RATE_HZ = 100.0
 TARE_MIN_SAMPLES = 5
@@ -422,7 +425,7 @@ def calibrate_current(
               f"{m.frames} frames over {m.span_s:.2f} s), meter {reading:.4f} A",
               file=out, flush=True)  # fmt: skip
     fit = fit_current(device_a, meter_a, before)
-    new = p.Calibration(fit.offset_a, fit.gain, before.voltage_gain)
+    new = p.Calibration(fit.offset_a, fit.gain, before.voltage_gain, before.voltage_offset_v)
     new.to_data()  # range check before anything is sent
     cs.enable(False)  # the device refuses EEPROM writes while the output is on
     cs.set_calibration(new)
@@ -548,6 +551,68 @@ def measure_wire(
     with HeldCurrent(cs, current_a, settle_s=settle_s) as held:
         held.wait_span(average_s, timeout_s=settle_s + average_s + 10.0)
     return held.measurement()
+
+
+@dataclass(frozen=True)
+class WireOffset:
+    """The wire-voltage amplifier's offset, fitted and written to the device's EEPROM.
+
+    The device reads ``V = (raw − offset)·gain``; two holds (``points``: shunt current A, wire
+    voltage V as read with the old calibration) give ``V = R·I + intercept``: the intercept is
+    what the old offset left, so the new offset is ``old + intercept / gain``."""
+
+    before: p.Calibration
+    written: p.Calibration
+    read_back: p.Calibration
+    points: tuple[tuple[float, float], ...]
+    slope_ohm: float
+    intercept_v: float
+
+
+def fit_wire_offset(lo: Measurement, hi: Measurement, before: p.Calibration
+                    ) -> tuple[float, float, p.Calibration]:  # fmt: skip
+    """``(slope Ω, intercept V, the calibration to write)`` from two holds on the cold wire;
+    CalibrationError when the offset is beyond what the device stores."""
+    i_lo, i_hi = lo.shunt_current_a, hi.shunt_current_a
+    if not i_hi - i_lo > 0.2 * i_hi:
+        raise CalibrationError(
+            f"the two holds carried {i_lo * 1e3:.1f} and {i_hi * 1e3:.1f} mA: too close to fit "
+            "the wire voltage's offset; nothing written"
+        )
+    slope = (hi.voltage_v - lo.voltage_v) / (i_hi - i_lo)
+    intercept = hi.voltage_v - slope * i_hi
+    offset = before.voltage_offset_v + intercept / before.voltage_gain
+    if abs(offset) > VOLTAGE_OFFSET_MAX_V:
+        raise CalibrationError(
+            f"the wire voltage reads {intercept * 1e3:+.2f} mV at 0 A (offset "
+            f"{offset * 1e3:+.2f} mV, the device stores ±{VOLTAGE_OFFSET_MAX_V * 1e3:.3f} mV): "
+            "check the sense leads and the difference amplifier; nothing written"
+        )
+    new = dataclasses.replace(before, voltage_offset_v=offset)
+    new.to_data()  # range check before anything is sent
+    return slope, intercept, new
+
+
+def calibrate_wire_offset(cs: Any, wire: Any, current_a: float, *, average_s: float = 1.0,
+                          tolerance: float = WIRE_TOLERANCE) -> WireOffset:  # fmt: skip
+    """Hold ``WIRE_FIT_FRACTION × current_a`` and ``current_a`` on the cold wire, fit the wire
+    voltage's offset, write it (output off) and read it back. The wire is judged (open circuit,
+    sense leads, R against ``wire``: :func:`judge_wire`) on the offset-free slope before
+    anything is written."""
+    before = cs.get_calibration()
+    lo = measure_wire(cs, WIRE_FIT_FRACTION * current_a, average_s=average_s)
+    judge_wire(lo, wire, math.inf)  # an open circuit or lost sense: said before anything else
+    hi = measure_wire(cs, current_a, average_s=average_s)
+    judge_wire(hi, wire, math.inf)
+    slope, intercept, new = fit_wire_offset(lo, hi, before)
+    judge_wire(dataclasses.replace(hi, voltage_v=hi.voltage_v - intercept), wire, tolerance)
+    cs.enable(False)  # the device refuses EEPROM writes while the output is on
+    cs.set_calibration(new)
+    back = cs.get_calibration()
+    if not _same_calibration(back, new):
+        raise CalibrationError(f"read back {back} after writing {new}: the EEPROM did not take it")
+    points = ((lo.shunt_current_a, lo.voltage_v), (hi.shunt_current_a, hi.voltage_v))
+    return WireOffset(before, new, back, points, slope, intercept)
 
 
 # ---------------------------------------------------------------------------- sensor tare
@@ -746,11 +811,19 @@ def cmd_calibrate_wire(args: argparse.Namespace, *, out: Any = None) -> int:
     load_store(store)
     cs = _connect(args.port)
     try:
-        m = measure_wire(cs, args.current_a, average_s=args.average_s)
+        fitted = calibrate_wire_offset(cs, wire, args.current_a, average_s=args.average_s,
+                                       tolerance=tolerance)  # fmt: skip
+        m = measure_wire(cs, args.current_a, average_s=args.average_s)  # with the new offset
     except CurrentSourceError as exc:
         raise CalibrationError(f"current driver: {exc}") from None
     finally:
         cs.close()
+    (i_lo, v_lo), (i_hi, v_hi) = fitted.points
+    print(f"wire voltage at {i_lo:.4f} A: {v_lo * 1e3:.2f} mV, at {i_hi:.4f} A: "
+          f"{v_hi * 1e3:.2f} mV (offset {fitted.before.voltage_offset_v * 1e3:+.3f} mV): "
+          f"{fitted.intercept_v * 1e3:+.3f} mV at 0 A", file=out)  # fmt: skip
+    print(f"wire-voltage offset written to EEPROM and read back: "
+          f"{fitted.read_back.voltage_offset_v * 1e3:+.3f} mV", file=out)  # fmt: skip
     check = judge_wire(m, wire, tolerance)
     print(f"wire {check.length_mm:g} mm × {check.diameter_mm:g} mm at {check.current_a:.4f} A: "
           f"V {check.voltage_v * 1e3:.2f} mV (Kelvin), R {check.resistance_ohm:.4f} Ω, "
@@ -773,6 +846,9 @@ def cmd_calibrate_wire(args: argparse.Namespace, *, out: Any = None) -> int:
         "current_a": check.current_a,
         "ambient_c": check.ambient_c,
         "heating_k": check.heating_k,
+        "voltage_offset_v": fitted.read_back.voltage_offset_v,
+        "voltage_offset_before_v": fitted.before.voltage_offset_v,
+        "fit_points": [{"current_a": i, "voltage_v": v} for i, v in fitted.points],
         "measured_at": _now_iso(),
         "port": args.port,
     }
@@ -796,7 +872,8 @@ def cmd_calibrate_show(args: argparse.Namespace, *, out: Any = None) -> int:
             cs.close()
         default = " (EEPROM invalid: defaults)" if t.flags & p.Flag.CAL_DEFAULT else ""
         print(f"device on {args.port}: offset {cal.current_offset_a * 1e3:+.3f} mA, gain "
-              f"{cal.current_gain:.5f}, voltage gain {cal.voltage_gain:.5f}{default}",
+              f"{cal.current_gain:.5f}, voltage gain {cal.voltage_gain:.5f}, wire-voltage "
+              f"offset {cal.voltage_offset_v * 1e3:+.3f} mV{default}",
               file=out)  # fmt: skip
     return 0
 

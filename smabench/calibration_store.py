@@ -88,8 +88,9 @@ def session_block(source: Any, path: str | Path | None = None) -> dict[str, Any]
         rec = store.get("current") or {}
         written = None
         try:
-            stored = p.Calibration(
-                rec["offset_a"], rec["gain"], rec.get("voltage_gain", cal.voltage_gain)
+            stored = p.Calibration(  # the wire-voltage offset is `calibrate wire`'s
+                rec["offset_a"], rec["gain"], rec.get("voltage_gain", cal.voltage_gain),
+                cal.voltage_offset_v,
             )
             if _same_calibration(stored, cal):
                 written = rec.get("written_at")
@@ -104,6 +105,7 @@ def session_block(source: Any, path: str | Path | None = None) -> dict[str, Any]
             "current_offset_a": cal.current_offset_a,
             "current_gain": cal.current_gain,
             "voltage_gain": cal.voltage_gain,
+            "voltage_offset_v": cal.voltage_offset_v,
             # CAL_DEFAULT: the calibration or the heat model in EEPROM invalid, defaults in use
             "eeprom_defaults": None if latest is None else bool(latest.flags & p.Flag.CAL_DEFAULT),
             "written_at": written,  # null: not written by `smabench calibrate` with this store

@@ -384,6 +384,36 @@ def test_calibrate_wire_on_the_mock(bench, store, capsys):
     assert "stays martensite" in out
 
 
+@pytest.mark.parametrize("offset_mv", [3.0, -2.0])
+def test_calibrate_wire_takes_out_the_amplifier_offset(store, capsys, offset_mv):
+    """A difference amplifier reading ``offset_mv`` off at the wire (issue 25: ≈ 10 mV possible,
+    11 % of R at 0.2 A): before, R at 0.2 A is that far off; ``calibrate wire`` fits the offset
+    from two holds, writes it to the EEPROM (protocol 3) and the wire then reads within 0.25 %
+    of its resistance: on this mock nothing dithers the ADS1115's codes, whose LSB (125 µV at
+    the wire, 78 µA) is 0.15 % of R at 0.2 A (``electrical.resistance_resolution``); measured
+    +0.21 % for both offsets, the offset recovered within 0.06 mV."""
+    r_true, offset_v = 0.44, offset_mv * 1e-3
+    wire = Electrical(resistance_ohm=r_true, wire_offset_v=offset_v)
+    with SerialDevice(electrical=wire, thread_priority=DEVICE_RT_PRIORITY) as dev:
+        with CurrentSource(dev.port_name, lease_s=1.0) as cs:
+            raw = cal.measure_wire(cs, 0.2, average_s=0.3)
+        r_raw = raw.voltage_v / raw.shunt_current_a
+        assert abs(r_raw / r_true - 1.0) > 0.02, r_raw  # the offset shows before
+        rc = main(["calibrate", "wire", "--port", dev.port_name, "--wire-length-mm", "55",
+                   "--wire-diameter-mm", "0.38", "--average-s", "0.5"])  # fmt: skip
+        out = capsys.readouterr().out
+        assert rc == 0, out
+        back = _read_back(dev.port_name)
+    rec = json.loads(store.read_text())["wire"]
+    print(f"\namplifier offset {offset_mv:+.1f} mV: R {r_raw:.4f} Ω before, "
+          f"{rec['resistance_ohm']:.5f} Ω after ({rec['resistance_ohm'] / r_true - 1:+.3%}); "
+          f"offset written {back.voltage_offset_v * 1e3:+.3f} mV")  # fmt: skip
+    assert back.voltage_offset_v == pytest.approx(offset_v, abs=0.1e-3)
+    assert rec["voltage_offset_v"] == back.voltage_offset_v
+    assert rec["resistance_ohm"] == pytest.approx(r_true, rel=0.0025)
+    assert "wire-voltage offset written to EEPROM and read back" in out
+
+
 @pytest.mark.parametrize(
     "electrical, match",
     [

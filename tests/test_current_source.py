@@ -527,11 +527,11 @@ def test_byte_replay():
     fake = FakeSerial()
     cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0.01)
     cs.connect()
-    # lone delimiter (flush), IDENTIFY v2 seq 0, SET_TELEMETRY 10 ms seq 1
-    assert p.PROTOCOL_VERSION == 2
+    # lone delimiter (flush), IDENTIFY v3 seq 0, SET_TELEMETRY 10 ms seq 1
+    assert p.PROTOCOL_VERSION == 3
     assert fake.frames == [
         b"\x00",
-        bytes.fromhex("01050102efdf00"),
+        bytes.fromhex("01050103cecf00"),
         bytes.fromhex("0401050a034ff600"),
     ]
     for call, frame in REPLAY:

@@ -164,8 +164,8 @@ def test_identify_reply_vector():
     ack = p.Ack.from_payload(payload)
     assert (ack.type, ack.status) == (p.MsgType.IDENTIFY, p.Status.OK)
     info = p.DeviceInfo.from_data(ack.data)
-    assert info == p.DeviceInfo(2, (2, 0, 0), 2.5, "SMA-CD328")
-    assert info.firmware == "2.0.0"
+    assert info == p.DeviceInfo(3, (3, 0, 0), 2.5, "SMA-CD328")
+    assert info.firmware == "3.0.0"
     assert info.to_data() == ack.data
 
 
@@ -253,7 +253,7 @@ def test_command_table_matches_spec():
         p.MsgType.CLEAR_FAULTS: 0,
         p.MsgType.PING: 0,
         p.MsgType.SET_LEASE: 2,
-        p.MsgType.SET_CALIBRATION: 6,
+        p.MsgType.SET_CALIBRATION: 8,
         p.MsgType.GET_CALIBRATION: 0,
         p.MsgType.SET_HEAT_MODEL: 8,
         p.MsgType.GET_HEAT_MODEL: 0,
@@ -282,11 +282,12 @@ def test_command_table_matches_firmware_header():
         assert defs[f"TC_{b.name}"] == b.value, b
     assert defs["LEASE_DEFAULT_MS"] == round(p.LEASE_DEFAULT_S * 1000)
     assert defs["CUT_STARTUP_MS"] == round(p.CUT_STARTUP_S * 1000)
+    assert defs["CAL_LEN"] == p.COMMANDS[p.MsgType.SET_CALIBRATION].size
 
 
 def test_unit_builders():
     M = p.MsgType
-    assert p.identify() == (M.IDENTIFY, b"\x02")
+    assert p.identify() == (M.IDENTIFY, b"\x03")
     assert p.enable(True) == (M.ENABLE, b"\x01")
     assert p.enable(False) == (M.ENABLE, b"\x00")
     assert p.set_current(1.0) == (M.SET_CURRENT, b"\xe8\x03")
@@ -365,17 +366,21 @@ def test_telemetry_defaults_for_devices_without_the_new_fields():
 
 
 def test_calibration_and_heat_model_roundtrip_and_ranges():
-    cal = p.Calibration(current_offset_a=-0.0025, current_gain=1 / 1.03, voltage_gain=1.01)
+    cal = p.Calibration(current_offset_a=-0.0025, current_gain=1 / 1.03, voltage_gain=1.01,
+                        voltage_offset_v=-0.004321)
     data = cal.to_data()
-    assert struct.unpack("<hHH", data) == (-2500, round(32768 / 1.03), round(32768 * 1.01))
+    assert struct.unpack("<hHHh", data) == (-2500, round(32768 / 1.03), round(32768 * 1.01),
+                                            -4321)  # fmt: skip
     back = p.Calibration.from_data(data)
     assert back.current_offset_a == pytest.approx(-0.0025)
+    assert back.voltage_offset_v == pytest.approx(-0.004321)
     assert back.current_gain == pytest.approx(1 / 1.03, abs=1 / 32768)
     assert p.set_calibration(cal) == (p.MsgType.SET_CALIBRATION, data)
     for bad in (
         p.Calibration(current_gain=0.49),
         p.Calibration(voltage_gain=1.51),
         p.Calibration(current_offset_a=0.04),
+        p.Calibration(voltage_offset_v=-0.033),
     ):
         with pytest.raises(ValueError):
             bad.to_data()

@@ -157,6 +157,7 @@ class CoreState(ctypes.Structure):
         ("cal_offset_ua", ctypes.c_int16),
         ("cal_current_gain", ctypes.c_uint16),
         ("cal_voltage_gain", ctypes.c_uint16),
+        ("cal_voltage_offset_uv", ctypes.c_int16),
         ("heat_r_mohm", ctypes.c_uint16),
         ("heat_c", ctypes.c_uint16),
         ("heat_g", ctypes.c_uint16),

@@ -68,6 +68,7 @@ class Electrical:
     estop: bool = False
     vsense: bool = True
     avcc_v: float = _ADC_REF_V  # the Nano's AVcc (USB through its diode: 4.65 … 5.0 V)
+    wire_offset_v: float = 0.0  # the wire-voltage amplifier's offset, referred to the wire, V
     fault: str | None = None  # injected: "mosfet-short", "wire-to-ground", "mcu-hang"
 
     def __post_init__(self) -> None:
@@ -324,7 +325,7 @@ class MockFirmware:
             io.tc_word = max31855_word(wire)
         io.estop = 1 if wire.estop else 0
         io.xadc_present = 1 if wire.vsense else 0
-        wire_v = supply_v if wire.open_wire else i_a * wire.resistance_ohm
+        wire_v = (supply_v if wire.open_wire else i_a * wire.resistance_ohm) + wire.wire_offset_v
         io.xadc_code[0] = _int16(wire_v / _WIRE_V_PER_LSB)
         io.xadc_code[1] = _int16(self.shunt_ma / 1000.0 / _SHUNT_A_PER_LSB)
         io.tc_bus_ok = 1

@@ -181,6 +181,7 @@ static void cal_pack(uint8_t *d)
     put_u16(d, (uint16_t)s.cal.offset_ua);
     put_u16(d + 2, s.cal.current_gain);
     put_u16(d + 4, s.cal.voltage_gain);
+    put_u16(d + 6, (uint16_t)s.cal.voltage_offset_uv);
 }
 
 static void heat_pack(uint8_t *d)
@@ -193,7 +194,7 @@ static void heat_pack(uint8_t *d)
 
 static uint8_t cal_valid(int16_t off, uint16_t ig, uint16_t vg)
 {
-    (void)off; /* every i16 offset is in range */
+    (void)off; /* every i16 offset (current uA, wire voltage uV) is in range */
     return ig >= CAL_GAIN_MIN && ig <= CAL_GAIN_MAX && vg >= CAL_GAIN_MIN && vg <= CAL_GAIN_MAX;
 }
 
@@ -214,10 +215,12 @@ static void load_eeprom(void)
 {
     uint8_t d[8];
     uint8_t ok = 1;
-    s.cal = (core_cal_t){0, CAL_GAIN_ONE, CAL_GAIN_ONE};
-    if (ee_load(EE_CAL_ADDR, 'C', d, 6) &&
+    s.cal = (core_cal_t){0, CAL_GAIN_ONE, CAL_GAIN_ONE, 0};
+    /* a protocol-2 block (magic 'C', 6 bytes, no voltage offset) is not read: defaults */
+    if (ee_load(EE_CAL_ADDR, EE_CAL_MAGIC, d, CAL_LEN) &&
         cal_valid((int16_t)get_u16(d), get_u16(d + 2), get_u16(d + 4))) {
-        s.cal = (core_cal_t){(int16_t)get_u16(d), get_u16(d + 2), get_u16(d + 4)};
+        s.cal = (core_cal_t){(int16_t)get_u16(d), get_u16(d + 2), get_u16(d + 4),
+                             (int16_t)get_u16(d + 6)};
     } else {
         ok = 0;
     }
@@ -244,7 +247,7 @@ static uint8_t expected_len(uint8_t type)
     case MSG_SET_TELEMETRY:
     case MSG_SET_LEASE: return 2;
     case MSG_SET_LIMITS: return 4;
-    case MSG_SET_CALIBRATION: return 6;
+    case MSG_SET_CALIBRATION: return CAL_LEN;
     case MSG_SET_HEAT_MODEL: return 8;
     case MSG_CLEAR_FAULTS:
     case MSG_PING:
@@ -331,10 +334,10 @@ static uint8_t cmd_set_calibration(const uint8_t *a)
     if (s.enabled) {
         return ST_OUTPUT_ON;
     }
-    s.cal = (core_cal_t){off, ig, vg};
-    uint8_t d[6];
+    s.cal = (core_cal_t){off, ig, vg, (int16_t)get_u16(a + 6)};
+    uint8_t d[CAL_LEN];
     cal_pack(d);
-    ee_store(EE_CAL_ADDR, 'C', d, 6);
+    ee_store(EE_CAL_ADDR, EE_CAL_MAGIC, d, CAL_LEN);
     load_eeprom(); /* read back: the flag says whether it stuck */
     return ST_OK;
 }
@@ -422,7 +425,7 @@ static uint8_t run_command(const frame_packet_t *p, uint8_t *data, uint8_t *data
     case MSG_CLEAR_FAULTS: return cmd_clear_faults();
     case MSG_SET_LEASE: return cmd_set_lease(get_u16(a));
     case MSG_SET_CALIBRATION: return cmd_set_calibration(a);
-    case MSG_GET_CALIBRATION: cal_pack(data); *data_len = 6; return ST_OK;
+    case MSG_GET_CALIBRATION: cal_pack(data); *data_len = CAL_LEN; return ST_OK;
     case MSG_SET_HEAT_MODEL: return cmd_set_heat_model(a);
     case MSG_GET_HEAT_MODEL: heat_pack(data); *data_len = 8; return ST_OK;
     default: return ST_OK; /* PING: only feeds the host watchdog, never the lease */
@@ -555,7 +558,8 @@ static void xadc_publish(int32_t mean_code)
         span <= (uint16_t)(xadc_i_max / 32u + 10u)
             ? (uint16_t)(((uint32_t)xadc_i_min + xadc_i_max) / 2u) : 0xFFFFu;
     if (xadc_channel == HAL_XADC_WIRE) {
-        float uv = (float)mean_code * ((float)ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0f) *
+        float uv = ((float)mean_code * ((float)ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0f) -
+                    (float)s.cal.voltage_offset_uv) *
                    ((float)s.cal.voltage_gain / 32768.0f);
         float dmv = uv * 0.01f;
         s.voltage_dmv = dmv <= 0.0f ? 0u : dmv >= 65534.0f ? 65534u : (uint16_t)(dmv + 0.5f);

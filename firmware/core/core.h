@@ -1,5 +1,5 @@
 /* Portable firmware core: frame codec, commands, current control of the linear sink, safety
- * (firmware/PROTOCOL.md, protocol version 2). No AVR headers here; all I/O goes through hal.h. */
+ * (firmware/PROTOCOL.md, protocol version 3). No AVR headers here; all I/O goes through hal.h. */
 #ifndef SMA_CORE_H
 #define SMA_CORE_H
 #include <stdint.h>
@@ -10,7 +10,8 @@
 #define CORE_CONTROL_PERIOD_MS 1u /* core_control_tick() is called every 1 ms */
 
 /* EEPROM layout (byte addresses) */
-#define EE_CAL_ADDR 0u   /* calibration block, 10 bytes */
+#define EE_CAL_ADDR 0u   /* calibration block, 12 bytes (CAL_LEN + magic, version, CRC) */
+#define EE_CAL_MAGIC 'c' /* with the wire-voltage offset (protocol 3); 'C' was protocol 2's */
 #define EE_HEAT_ADDR 16u /* heat model block, 12 bytes */
 
 /* Heat model defaults: the bench's 55 mm of 0.38 mm Flexinol, chosen so the model runs hotter than
@@ -27,6 +28,7 @@ typedef struct {
     int16_t offset_ua;     /* fast-path current offset, uA (subtracted) */
     uint16_t current_gain; /* Q15 */
     uint16_t voltage_gain; /* Q15 */
+    int16_t voltage_offset_uv; /* wire-voltage offset at the ADC's input scale, uV (subtracted) */
 } core_cal_t;
 
 typedef struct {

@@ -3,7 +3,7 @@
 #ifndef SMA_PROTO_H
 #define SMA_PROTO_H
 
-#define PROTOCOL_VERSION 2u
+#define PROTOCOL_VERSION 3u
 
 /* Message types */
 #define MSG_IDENTIFY 0x01u
@@ -64,7 +64,7 @@
 #define U16_NONE 0xFFFFu  /* u16 measurements: not available */
 
 /* Device identity (IDENTIFY data) */
-#define FW_VERSION_MAJOR 2u
+#define FW_VERSION_MAJOR 3u
 #define FW_VERSION_MINOR 0u
 #define FW_VERSION_PATCH 0u
 #ifndef DEVICE_NAME /* the host library for the Python stand-ins says SMA-CD328-MOCK */
@@ -97,6 +97,8 @@
 #define CAL_GAIN_MIN 16384u
 #define CAL_GAIN_MAX 49152u
 #define CAL_OFFSET_MAX_UA 32767
+#define CAL_LEN 8u /* SET_CALIBRATION payload: i16 current offset uA, u16 current gain Q15,
+                    * u16 voltage gain Q15, i16 wire-voltage offset uV (protocol version 3) */
 
 /* Heat model (SET_HEAT_MODEL) ranges, in the wire units */
 #define HEAT_R_MIN_MOHM 50u      /* resistance, mOhm */

@@ -70,7 +70,7 @@ void fake_reset(void)
     pwm_duty = 0;
     out_enabled = 0;
     pwm_sets = wdt_feeds = 0;
-    sink = (fake_sink_t){0.44, 5.0, 0.06, 0, 1.0, 1.0, 0.0, 0.0, 0.0};
+    sink = (fake_sink_t){0.44, 5.0, 0.06, 0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0};
     t_us = 0.0;
     next_sample_us = 0.0;
     v1 = v2 = i_a = i_meas_a = 0.0;
@@ -326,7 +326,7 @@ int8_t hal_xadc_start(uint8_t channel)
     xadc_ch = channel;
     double code;
     if (channel == HAL_XADC_WIRE) {
-        double v = sink.open ? sink.supply_v : i_a * sink.wire_ohm;
+        double v = (sink.open ? sink.supply_v : i_a * sink.wire_ohm) + sink.wire_offset_v;
         code = v * 1e6 / (ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0);
     } else {
         code = i_a * 1e9 / ELEC_ADS1115_SHUNT_NA_PER_LSB;

@@ -23,6 +23,7 @@ typedef struct {
     double adc_offset_ma; /* fast-path offset, mA */
     double ripple_a_pp;   /* PWM ripple on the wire current (15.625 kHz), peak to peak, A */
     double async_period_us; /* 0: conversions at every 2nd PWM period (the HAL); else this period */
+    double wire_offset_v; /* wire-voltage amplifier offset referred to the wire, V */
 } fake_sink_t;
 
 void fake_reset(void);                 /* everything but the EEPROM to defaults; sink on 0.44 Ohm */

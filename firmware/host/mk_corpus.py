@@ -51,7 +51,7 @@ def main():
         # protocol v2: lease, calibration, heat model, e-stop, sensor faults
         b"\x01" + cmd(8, struct.pack("<H", 50)) + on + cmd(3, struct.pack("<H", 800)) + ticks(80)
         + cmd(7) + ticks(80),
-        b"\x01" + cmd(9, struct.pack("<hHH", 1500, 32000, 33000)) + cmd(10)
+        b"\x01" + cmd(9, struct.pack("<hHHh", 1500, 32000, 33000, -2500)) + cmd(10)
         + cmd(11, struct.pack("<HHHH", 1000, 200, 300, 1000)) + cmd(12) + on
         + cmd(3, struct.pack("<H", 2500)) + ticks(250) + ticks(250) + cmd(6),
         b"\x01" + on + cmd(3, struct.pack("<H", 1000)) + ticks(20) + bytes((2, 44, 2)) + ticks(5)

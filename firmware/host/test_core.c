@@ -486,11 +486,12 @@ static void test_commands(void)
               st()->telemetry_period_ms == 0,
           "defaults");
     /* IDENTIFY */
-    CHECK(cmd_u8(MSG_IDENTIFY, 2) == ST_OK, "identify");
-    const uint8_t want[] = {2, 2, 0, 0, 0xC4, 0x09, 'S', 'M', 'A', '-', 'C', 'D', '3', '2', '8'};
+    CHECK(cmd_u8(MSG_IDENTIFY, 3) == ST_OK, "identify");
+    const uint8_t want[] = {3, 3, 0, 0, 0xC4, 0x09, 'S', 'M', 'A', '-', 'C', 'D', '3', '2', '8'};
     CHECK(rxp[0].len == 3 + sizeof want && memcmp(rxp[0].payload + 3, want, sizeof want) == 0,
           "identify data");
     CHECK(cmd_u8(MSG_IDENTIFY, 1) == ST_VERSION_MISMATCH, "version 1 host: mismatch");
+    CHECK(cmd_u8(MSG_IDENTIFY, 2) == ST_VERSION_MISMATCH, "version 2 host (no voltage offset): mismatch");
     CHECK(rxp[0].len == 3 + sizeof want && memcmp(rxp[0].payload + 3, want, sizeof want) == 0,
           "mismatch still sends data");
     /* unknown types */
@@ -544,8 +545,8 @@ static void test_commands(void)
     CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK, "clear faults");
     CHECK(cmd(MSG_PING, NULL, 0) == ST_OK, "ping");
     /* EEPROM commands are refused while the output is on */
-    const uint16_t cal[] = {0, CAL_GAIN_ONE, CAL_GAIN_ONE};
-    CHECK(cmd_words(MSG_SET_CALIBRATION, cal, 3) == ST_OUTPUT_ON, "calibration while on");
+    const uint16_t cal[] = {0, CAL_GAIN_ONE, CAL_GAIN_ONE, 0};
+    CHECK(cmd_words(MSG_SET_CALIBRATION, cal, 4) == ST_OUTPUT_ON, "calibration while on");
     const uint16_t heat[] = {550, 336, 590, 1800};
     CHECK(cmd_words(MSG_SET_HEAT_MODEL, heat, 4) == ST_OUTPUT_ON, "heat model while on");
     CHECK(cmd_u8(MSG_ENABLE, 0) == ST_OK && !st()->enabled && fake_pwm_duty() == 0 &&
@@ -566,15 +567,30 @@ static void test_calibration(void)
     reset(0);
     CHECK(st()->flags & FLAG_CAL_DEFAULT, "blank EEPROM: defaults flagged");
     CHECK(st()->cal.offset_ua == 0 && st()->cal.current_gain == CAL_GAIN_ONE &&
-              st()->cal.voltage_gain == CAL_GAIN_ONE,
+              st()->cal.voltage_gain == CAL_GAIN_ONE && st()->cal.voltage_offset_uv == 0,
           "default calibration");
-    CHECK(cmd(MSG_GET_CALIBRATION, NULL, 0) == ST_OK && rxp[0].len == 9 &&
+    CHECK(cmd(MSG_GET_CALIBRATION, NULL, 0) == ST_OK && rxp[0].len == 3 + CAL_LEN &&
               rd16(rxp[0].payload + 3) == 0 && rd16(rxp[0].payload + 5) == CAL_GAIN_ONE &&
-              rd16(rxp[0].payload + 7) == CAL_GAIN_ONE,
+              rd16(rxp[0].payload + 7) == CAL_GAIN_ONE && rd16(rxp[0].payload + 9) == 0,
           "GET_CALIBRATION defaults");
-    const uint16_t bad1[] = {0, CAL_GAIN_MIN - 1, CAL_GAIN_ONE}, bad2[] = {0, CAL_GAIN_ONE, CAL_GAIN_MAX + 1};
-    CHECK(cmd_words(MSG_SET_CALIBRATION, bad1, 3) == ST_OUT_OF_RANGE, "current gain below 0.5");
-    CHECK(cmd_words(MSG_SET_CALIBRATION, bad2, 3) == ST_OUT_OF_RANGE, "voltage gain above 1.5");
+    const uint16_t bad1[] = {0, CAL_GAIN_MIN - 1, CAL_GAIN_ONE, 0},
+                   bad2[] = {0, CAL_GAIN_ONE, CAL_GAIN_MAX + 1, 0};
+    CHECK(cmd_words(MSG_SET_CALIBRATION, bad1, 4) == ST_OUT_OF_RANGE, "current gain below 0.5");
+    CHECK(cmd_words(MSG_SET_CALIBRATION, bad2, 4) == ST_OUT_OF_RANGE, "voltage gain above 1.5");
+    CHECK(cmd_words(MSG_SET_CALIBRATION, bad1, 3) == ST_BAD_LENGTH, "protocol-2 length (6 bytes)");
+    /* a protocol-2 block in the EEPROM (magic 'C', 6 bytes) is not taken for this one */
+    {
+        uint8_t old[10] = {'C', 1, 0x98, 0x3A, 0x00, 0x80, 0x00, 0x80, 0, 0};
+        uint16_t crc = crc16_ccitt(old, 8);
+        old[8] = (uint8_t)crc;
+        old[9] = (uint8_t)(crc >> 8);
+        hal_eeprom_write(EE_CAL_ADDR, old, sizeof old);
+        reset(0);
+        CHECK((st()->flags & FLAG_CAL_DEFAULT) && st()->cal.offset_ua == 0,
+              "protocol-2 calibration block: defaults, flagged");
+        fake_eeprom_erase();
+        reset(0);
+    }
     /* a sink whose fast path reads 3 % high with a 15 mA offset, calibrated out */
     fake_sink()->adc_gain = 1.03;
     fake_sink()->adc_offset_ma = 15.0;
@@ -587,8 +603,9 @@ static void test_calibration(void)
     double true_raw = fake_current_a() * 1000.0;
     cmd_u8(MSG_ENABLE, 0);
     /* offset_ua = 15 mA (as read by the amplifier), gain = 1/1.03 */
-    const uint16_t cal[] = {(uint16_t)15000, (uint16_t)(32768.0 / 1.03 + 0.5), (uint16_t)(32768 * 1.01)};
-    CHECK(cmd_words(MSG_SET_CALIBRATION, cal, 3) == ST_OK, "set calibration");
+    const uint16_t cal[] = {(uint16_t)15000, (uint16_t)(32768.0 / 1.03 + 0.5), (uint16_t)(32768 * 1.01),
+                            (uint16_t)(int16_t)-4000};
+    CHECK(cmd_words(MSG_SET_CALIBRATION, cal, 4) == ST_OK, "set calibration");
     CHECK(!(st()->flags & FLAG_CAL_DEFAULT) == 0, "heat block still blank: defaults flag stays");
     const uint16_t heat[] = {550, 336, 590, 1800};
     CHECK(cmd_words(MSG_SET_HEAT_MODEL, heat, 4) == ST_OK && !(st()->flags & FLAG_CAL_DEFAULT),
@@ -596,10 +613,12 @@ static void test_calibration(void)
     /* survives a reset (EEPROM kept) */
     reset(0);
     CHECK(!(st()->flags & FLAG_CAL_DEFAULT) && st()->cal.offset_ua == 15000 &&
-              st()->cal.current_gain == cal[1] && st()->cal.voltage_gain == cal[2],
+              st()->cal.current_gain == cal[1] && st()->cal.voltage_gain == cal[2] &&
+              st()->cal.voltage_offset_uv == -4000,
           "calibration loaded from EEPROM");
     CHECK(cmd(MSG_GET_CALIBRATION, NULL, 0) == ST_OK && rd16(rxp[0].payload + 3) == 15000 &&
-              rd16(rxp[0].payload + 5) == cal[1] && rd16(rxp[0].payload + 7) == cal[2],
+              rd16(rxp[0].payload + 5) == cal[1] && rd16(rxp[0].payload + 7) == cal[2] &&
+              rd16(rxp[0].payload + 9) == cal[3],
           "GET_CALIBRATION after reset");
     fake_sink()->adc_gain = 1.03;
     fake_sink()->adc_offset_ma = 15.0;
@@ -616,10 +635,14 @@ static void test_calibration(void)
     CHECK(fabs(err_cal) <= 4.0, "calibrated: %.1f mA", err_cal);
     CHECK(fabs(fake_current_a() * 1000.0 - 1000.0) <= 5.0, "the loop regulates the true current");
     ticks(20);
-    /* the voltage gain scales the Kelvin reading */
+    /* the voltage gain scales the Kelvin reading; its offset (-4 mV stored: an amplifier that
+     * reads 4 mV low) is taken off first */
+    fake_sink()->wire_offset_v = -0.004;
+    ticks(40);
     double want_dmv = fake_current_a() * 0.44 * 1.01 * 1e4;
-    CHECK(fabs(st()->voltage_dmv - want_dmv) <= 6.0, "voltage gain applied: %u vs %.1f",
+    CHECK(fabs(st()->voltage_dmv - want_dmv) <= 6.0, "voltage offset and gain applied: %u vs %.1f",
           st()->voltage_dmv, want_dmv);
+    fake_sink()->wire_offset_v = 0.0;
     cmd_u8(MSG_ENABLE, 0);
     /* a corrupted block falls back to defaults, flagged */
     uint8_t b = fake_eeprom_byte(EE_CAL_ADDR + 3);

@@ -29,7 +29,7 @@ import tty
 IDENTIFY, ENABLE, SET_CURRENT, SET_LIMITS, SET_TELEMETRY, CLEAR_FAULTS, PING = range(1, 8)
 SET_LEASE, SET_CALIBRATION, GET_CALIBRATION, SET_HEAT_MODEL, GET_HEAT_MODEL = range(8, 13)
 ACK, TELEMETRY = 0x80, 0x90
-PROTOCOL_VERSION = 2
+PROTOCOL_VERSION = 3
 FLAG_ENABLED, FLAG_WATCHDOG_RESET, FLAG_LEASE_EXPIRED = 1 << 0, 1 << 4, 1 << 6
 FLAG_OVERTEMP, FLAG_ESTOP, FLAG_NTC_FAULT, FLAG_TC_FAULT = 1 << 7, 1 << 8, 1 << 9, 1 << 10
 ST_OK, ST_FAULT_ACTIVE = 0, 4
@@ -384,11 +384,11 @@ def safety_paths(sim: Sim, link: Link) -> None:
     check(t["tc"] == TEMP_NONE and not t["flags"] & FLAG_TC_FAULT, "no thermocouple: absent")
 
     # calibration in EEPROM
-    cal = struct.pack("<hHH", 1500, 32000, 33000)
+    cal = struct.pack("<hHHh", 1500, 32000, 33000, -2500)
     check(cmd(link, SET_CALIBRATION, cal) == ST_OK, "calibration stored")
     seq, _ = link.send(GET_CALIBRATION)
     check(link.ack(seq, GET_CALIBRATION) == (ST_OK, cal), "GET_CALIBRATION reads it back")
-    cmd(link, SET_CALIBRATION, struct.pack("<hHH", 0, 32768, 32768))
+    cmd(link, SET_CALIBRATION, struct.pack("<hHHh", 0, 32768, 32768, 0))
     cmd(link, SET_TELEMETRY, u16(0))
 
 
@@ -448,7 +448,7 @@ def main() -> int:
         seq, frame = link.send(IDENTIFY, bytes([PROTOCOL_VERSION]))
         status, data = link.ack(seq, IDENTIFY)
         check(status == 0, f"IDENTIFY ACK status OK (got {status})")
-        check(len(data) >= 6 and data[0] == PROTOCOL_VERSION, "protocol version 2 in IDENTIFY data")
+        check(len(data) >= 6 and data[0] == PROTOCOL_VERSION, f"protocol version {PROTOCOL_VERSION} in IDENTIFY data")
         fw, limit = data[1:4], struct.unpack("<H", data[4:6])[0]
         name = data[6:].decode("ascii", "replace")
         check(name == "SMA-CD328",
@@ -467,7 +467,7 @@ def main() -> int:
 
         # round trips: PING, IDENTIFY, and a 16-byte frame (unknown type, 10-byte payload)
         results = []
-        for label, type_, payload in (("PING", PING, b""), ("IDENTIFY", IDENTIFY, bytes([2])),
+        for label, type_, payload in (("PING", PING, b""), ("IDENTIFY", IDENTIFY, bytes([PROTOCOL_VERSION])),
                                       ("16-byte frame", 0x7F, bytes(range(1, 11)))):
             times, n_out, n_back = round_trips(link, type_, payload, args.rounds)
             results.append((label, n_out, n_back, times))

@@ -478,8 +478,15 @@ class FramedLink:
                 ser.open()
         else:
             if self._stable_name is not None:  # the adapter back under another device name
+                if not os.path.exists(self._stable_name):
+                    # unplugged (udev removed its name): whatever now has the old device name
+                    # (another adapter, re-enumerated) is not this device; wait for the name
+                    raise serial.SerialException(
+                        f"{self._stable_name} is gone (the adapter unplugged); not opening "
+                        f"{self.port_name} in its place"
+                    )
                 now_at = os.path.realpath(self._stable_name)
-                if os.path.exists(now_at) and now_at != os.path.realpath(self.port_name):
+                if now_at != os.path.realpath(self.port_name):
                     log.warning("port %s is now %s (%s)", self.port_name, now_at,
                                 self._stable_name)  # fmt: skip
                     self.port_name = now_at

@@ -7,6 +7,8 @@ import json
 import os
 import signal
 import subprocess
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -23,6 +25,8 @@ from .conftest import (
     rows_on_disk,
     smabench_command,
 )
+
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.mark.slow
@@ -154,13 +158,15 @@ REPLUG_CLIENT = """
 import os, sys, time
 from smabench.drivers.current_source import CurrentSource
 
-source = CurrentSource(sys.argv[1], max_reconnect_attempts=20)
+source = CurrentSource(sys.argv[1], max_reconnect_attempts=int(sys.argv[3]))
 source.connect()
 assert source.link_ok
 print("connected", flush=True)
-sys.stdin.readline()  # the test unplugs and plugs back, then says so
+# the test unplugs and plugs back, then says so (with the new name when argv[2] is empty)
+said = sys.stdin.readline().strip()
+new_name = sys.argv[2] or said
 deadline = time.monotonic() + 60
-while not (source.link_ok and source._link.port_name == sys.argv[2]):
+while not (source.link_ok and source._link.port_name == new_name):
     assert time.monotonic() < deadline, "not reconnected through the stable name"
     time.sleep(0.05)  # polls the condition
 print("pong", source.ping() > 0, flush=True)  # a round trip to the bench behind the name
@@ -184,7 +190,7 @@ def test_driver_replugged_under_another_name_is_found_again_by_its_stable_name(
     stable = by_id / "usb-FTDI_FT232R_USB_UART_A10KZ3XY-if00-port0"
     stable.symlink_to(first.driver)
     client = subprocess.Popen(
-        [str(installed_python()), "-c", REPLUG_CLIENT, first.driver, second.driver],
+        [str(installed_python()), "-c", REPLUG_CLIENT, first.driver, second.driver, "20"],
         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         cwd=command_cwd(), env=command_env({"SMABENCH_SERIAL_BY_ID": str(by_id)}),
     )  # fmt: skip
@@ -197,6 +203,56 @@ def test_driver_replugged_under_another_name_is_found_again_by_its_stable_name(
         os.replace(tmp, stable)  # plugged back: another device name, the same stable name
         out, err = client.communicate("replugged\n", timeout=120)
     finally:
+        if client.poll() is None:
+            client.kill()
+            client.wait()
+    assert client.returncode == 0 and out.strip() == "pong True", (out, err)
+    assert f"port {first.driver} is now {second.driver} ({stable})" in err, err
+
+
+@pytest.mark.slow
+@pytest.mark.emulator
+def test_emulated_driver_replugged_is_found_again_by_its_stable_name(tmp_path, mock_bench):
+    """The same replug with the real firmware in simavr behind the pty (``--firmware
+    emulated``), as udev does it: the first bench killed (its harness goes with it, its pty is
+    gone) and its stable name removed; the old device name taken by another device (a pty of
+    the test's own: a second adapter plugged in meanwhile); a second emulated bench started (one
+    harness at a time: each takes most of a core) and the stable name created for it. The link
+    must wait for the stable name, never open the stranger under the old name."""
+    by_id = tmp_path / "by-id"
+    by_id.mkdir()
+    # the installed package carries no firmware build: the checkout's (make firmware-build)
+    builds = {"SMABENCH_SIM": str(REPO / "firmware/build/sim/smabench-sim"),
+              "SMABENCH_ELF": str(REPO / "firmware/build/avr/smabench-cd.elf")}  # fmt: skip
+    first = mock_bench(tmp_path / "t1.csv", "--firmware", "emulated", env=builds)
+    stable = by_id / "usb-FTDI_FT232R_USB_UART_A10KZ3XY-if00-port0"
+    stable.symlink_to(first.driver)
+    client = subprocess.Popen(  # 60 reopen attempts, ≥ 50 s: an emulated start on a busy host
+        [str(installed_python()), "-c", REPLUG_CLIENT, first.driver, "", "60"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        cwd=command_cwd(), env=command_env({"SMABENCH_SERIAL_BY_ID": str(by_id)}),
+    )  # fmt: skip
+    held = None
+    try:
+        assert client.stdout.readline().strip() == "connected", client.stderr.read()
+        first.proc.kill()  # unplugged: the mock, its harness and its pty are gone
+        first.proc.wait()
+        stable.unlink()  # udev removes the adapter's names
+        deadline = time.monotonic() + 15.0
+        while os.path.exists(first.driver):  # the harness (its child) ends on its parent's death
+            assert time.monotonic() < deadline, f"{first.driver} still there"
+            time.sleep(0.05)  # polls the condition
+        held = os.openpty()  # another device under the old name (the lowest free pty number)
+        second = mock_bench(tmp_path / "t2.csv", "--firmware", "emulated", env=builds)
+        assert second.driver != first.driver
+        stable.symlink_to(second.driver)  # plugged back: the same stable name
+        client.stdin.write(second.driver + "\n")
+        client.stdin.flush()
+        out, err = client.communicate(timeout=120)
+    finally:
+        if held is not None:
+            for fd in held:
+                os.close(fd)
         if client.poll() is None:
             client.kill()
             client.wait()

@@ -64,6 +64,15 @@ def _watch_opens(path: str) -> int:
     return fd
 
 
+WAKE_S = 0.002
+"""Shortest idle wait of the device thread, s (wall): the steps due meanwhile run in one burst at
+the next wake (each with its own device time), and host bytes wake it at once. Waking for every
+1 ms step cost the thread 79 % of a core at 5× (5000 wakes a second; a step's own work is 21 µs):
+at SCHED_FIFO that, beside a second such mock, ran past the kernel's real-time budget (RT
+throttling: every real-time thread of the CPU stopped for up to 50 ms, the kernel's pty worker
+starved) and telemetry was lost for 0.26 s in a GUI session on CI."""
+
+
 class SerialDevice:
     """Serve a :class:`MockFirmware` on a pty, stepped in real time by a thread.
 
@@ -273,14 +282,18 @@ class SerialDevice:
                         self.device_ms += self.step_ms
                     fw = self.firmware
                     if self.boot_end_ms is None:
+                        # host bytes once per wake (select wakes on them), the burst's output in
+                        # one write: a syscall per 1 ms step, each a release and re-take of the
+                        # interpreter lock, cost more than the steps themselves
                         self._receive(fw)
+                        out = bytearray()
                         while self.boot_end_ms is None and self.device_ms + self.step_ms <= target:
-                            self._step(fw)
-                            self._receive(fw)
+                            out += self._step(fw)
+                        self._write(bytes(out))
                 next_ms = self.device_ms + self.step_ms
                 wait_s = (next_ms - dev0) / (1e3 * self.speed) - (time.monotonic() - wall0)
-                if wait_s > 0:
-                    select.select([self._master], [], [], wait_s)
+                if wait_s > 0:  # caught up: idle until the next step is due, WAKE_S at least
+                    select.select([self._master], [], [], max(wait_s, WAKE_S))
         except Exception:
             log.exception("mock device thread crashed")
         finally:
@@ -309,16 +322,19 @@ class SerialDevice:
         if data:
             self._write(fw.receive(bytes(data), self.device_ms))
 
-    def _step(self, fw: MockFirmware) -> None:
+    def _step(self, fw: MockFirmware) -> bytes:
+        """One step of device time; returns what the device sent in it."""
         t = self.device_ms + self.step_ms
         if self.on_step is not None:
             wire = self.on_step(t, self.step_ms / 1e3, fw)
             if wire is not None:
                 self._electrical = wire
         self.device_ms = t
-        self._write(fw.tick(t, self._electrical))
+        return fw.tick(t, self._electrical)
 
     def _write(self, data: bytes) -> None:
+        if not data and not self._to_host:
+            return
         if self._to_host:
             data = bytes(self._to_host) + data
             self._to_host.clear()

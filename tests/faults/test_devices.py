@@ -210,6 +210,34 @@ def test_driver_replugged_under_another_name_is_found_again_by_its_stable_name(
     assert f"port {first.driver} is now {second.driver} ({stable})" in err, err
 
 
+def _take_pty_name(name: str, limit_s: float = 15.0) -> list[int]:
+    """Open ptys until one gets ``name`` (a pty number freed when its bench died, released by
+    the kernel a little after the node goes) or another process has it; returns the fds that
+    hold it, or none taken when someone else was first. The kernel hands out the lowest free
+    number, so the ptys opened on the way are closed once it is ours."""
+    deadline = time.monotonic() + limit_s
+    tried: list[tuple[int, int]] = []
+    try:
+        while time.monotonic() < deadline:
+            if os.path.exists(name) and not any(os.ttyname(s) == name for _, s in tried):
+                time.sleep(0.05)  # the old bench still holds it: polls the condition
+                continue
+            master, slave = os.openpty()
+            if os.ttyname(slave) == name:
+                return [master, slave]
+            tried.append((master, slave))
+            if os.path.exists(name):  # someone else has it now: the device cannot get it back
+                return []
+            if len(tried) >= 20:  # not released after 20 tries: leave it (the test says so)
+                return []
+            time.sleep(0.05)  # not released yet: polls the condition
+        return []
+    finally:
+        for master, slave in tried:
+            os.close(master)
+            os.close(slave)
+
+
 @pytest.mark.slow
 @pytest.mark.emulator
 def test_emulated_driver_replugged_is_found_again_by_its_stable_name(tmp_path, mock_bench):
@@ -238,11 +266,7 @@ def test_emulated_driver_replugged_is_found_again_by_its_stable_name(tmp_path, m
         first.proc.kill()  # unplugged: the mock, its harness and its pty are gone
         first.proc.wait()
         stable.unlink()  # udev removes the adapter's names
-        deadline = time.monotonic() + 15.0
-        while os.path.exists(first.driver):  # the harness (its child) ends on its parent's death
-            assert time.monotonic() < deadline, f"{first.driver} still there"
-            time.sleep(0.05)  # polls the condition
-        held = os.openpty()  # another device under the old name (the lowest free pty number)
+        held = _take_pty_name(first.driver)  # another device under the old name
         second = mock_bench(tmp_path / "t2.csv", "--firmware", "emulated", env=builds)
         assert second.driver != first.driver
         stable.symlink_to(second.driver)  # plugged back: the same stable name
@@ -250,9 +274,8 @@ def test_emulated_driver_replugged_is_found_again_by_its_stable_name(tmp_path, m
         client.stdin.flush()
         out, err = client.communicate(timeout=120)
     finally:
-        if held is not None:
-            for fd in held:
-                os.close(fd)
+        for fd in held or ():
+            os.close(fd)
         if client.poll() is None:
             client.kill()
             client.wait()

@@ -57,6 +57,18 @@ BY_ID_DIR_ENV = "SMABENCH_SERIAL_BY_ID"
 ``/dev/serial/by-id``, udev's: one symlink per USB adapter, named after its serial number)."""
 
 
+PTY_GONE = (
+    "the pseudo-terminal's other end closed (a mock bench or an emulator ended); its number "
+    "goes to the next program that opens a pty, so it is not reopened"
+)
+
+
+def is_pseudo_terminal(port: str) -> bool:
+    """Whether ``port`` is a Unix98 pseudo-terminal (``/dev/pts/N``: a mock bench, simavr's
+    harness, socat), whose device never comes back once its other end closed."""
+    return os.path.abspath(port).startswith("/dev/pts/")  # a stable name links to it: followed
+
+
 def stable_port_name(port: str) -> str | None:
     """The stable name (a symlink in ``/dev/serial/by-id``) of the device ``port`` is now, so
     a reopen finds the adapter again when it comes back under another name (``/dev/ttyUSB0`` →
@@ -704,6 +716,15 @@ class FramedLink:
             self._ready = False
             self._port_error = str(exc)
         self._fail_all(LinkTimeout(f"port {self.port_name} error: {exc}"))
+        if self._stable_name is None and is_pseudo_terminal(self.port_name):
+            # its other end (a mock bench, an emulator) closed: the kernel gives the number to
+            # the next program asking for a pty, so a reopen would take a stranger's port
+            log.error("port %s: %s", self.port_name, PTY_GONE)
+            with self._lock:
+                self._gave_up = True
+                self._port_error = f"gave up: {PTY_GONE} ({exc})"
+            self._reopen_at = None
+            return
         self._reopen_at = time.monotonic() + REOPEN_FIRST_DELAY_S
 
     def _reopen_step(self) -> None:

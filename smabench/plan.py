@@ -571,7 +571,17 @@ def _devices(args: argparse.Namespace) -> Devices:
         from smabench.bench.headless import ready_timeout_s
 
         ready_timeout_s()  # its environment setting checked before anything runs
-    return Devices(args.mock, args.port, args.sensor, args.sensor_map)
+    port = args.port
+    if port:
+        from smabench.drivers.link import stable_port_name
+
+        # every step and every retry opens the adapter's stable name: after a replug it is
+        # back under another device name, and the old name may be another device's
+        stable = stable_port_name(port)
+        if stable is not None:
+            print(f"port {port}: the steps open its stable name {stable}", flush=True)
+            port = stable
+    return Devices(args.mock, port, args.sensor, args.sensor_map)
 
 
 def cmd_plan_run(args: argparse.Namespace) -> int:

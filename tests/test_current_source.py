@@ -839,3 +839,40 @@ def test_two_stand_ins_in_one_process_share_no_state():
     assert (b.setpoint_ma, b.state.limit_ma, b.state.host_timeout_ms) == (0, 1000, 500)
     a.eeprom[5] = 0x42
     assert b.eeprom[5] == 0xFF  # a blank chip each
+
+
+def test_a_pty_that_closed_is_not_reopened_under_its_number(dev):
+    """A pseudo-terminal (a mock bench, an emulator) that closed never comes back: the kernel
+    gives its number to the next program that asks for a pty. The link gives up at once and
+    names why, instead of reopening that number and taking a stranger's port (a GUI runtime
+    whose mock died took another test's new mock bench this way)."""
+    import fcntl
+
+    name = dev.port_name
+    src = CurrentSource(name)
+    src.connect()
+    dev.stop()
+    wait_until(lambda: not src.link_ok, 10.0, "link_ok False")
+    fds: list[int] = []
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and not fds:  # the number, freed once the link let go
+        master, slave = os.openpty()
+        if os.ttyname(slave) == name:
+            fds = [master, slave]
+        else:
+            os.close(master)
+            os.close(slave)
+            time.sleep(0.05)  # not released yet: polls the condition
+    try:
+        wait_until(lambda: "gave up" in src.fault_text(), 5.0, "the link gives up")
+        assert "pseudo-terminal" in src.fault_text()
+        if fds:  # nobody holds the stranger's port: the link never opened it
+            fd = os.open(name, os.O_RDWR | os.O_NOCTTY)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            finally:
+                os.close(fd)
+    finally:
+        src.close()
+        for fd in fds:
+            os.close(fd)

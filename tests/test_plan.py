@@ -328,3 +328,27 @@ def test_predicted_peak_against_the_heat_balance(tmp_path):
 def test_plan_refuses_a_step_over_the_limits(tmp_path, edit, match):
     with pytest.raises(PlanError, match=match):
         load_plan(_plan(tmp_path, PLAN.replace(*edit, 1)))
+
+
+def test_a_plan_on_a_raw_port_follows_its_stable_name(tmp_path, monkeypatch):
+    """`plan run --port /dev/ttyUSB0`: every step, and every retry of a step after a link loss,
+    opens the adapter's stable name (udev's ``/dev/serial/by-id`` link), so a retry after a
+    replug finds the adapter under its new device name, not a stranger under the old one."""
+    import argparse
+
+    master, slave = os.openpty()
+    try:
+        raw = os.ttyname(slave)
+        by_id = tmp_path / "by-id"
+        by_id.mkdir()
+        stable = by_id / "usb-FTDI_FT232R_USB_UART_A50285BI-if00-port0"
+        stable.symlink_to(raw)
+        monkeypatch.setenv("SMABENCH_SERIAL_BY_ID", str(by_id))
+        args = argparse.Namespace(mock=False, port=raw, sensor="tcp:127.0.0.1:5020",
+                                  sensor_map="generic-rs485-laser")  # fmt: skip
+        assert planmod._devices(args).port == str(stable)
+        stable.unlink()  # an adapter without a stable name: its device name as given
+        assert planmod._devices(args).port == raw
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -329,6 +329,7 @@ class BenchRuntime:
         t0 = clock()
         next_tick = t0
         last_tick: float | None = None
+        setpoint_undelivered = False
         try:
             self.source.enable(True)
             while True:
@@ -388,7 +389,14 @@ class BenchRuntime:
                 if out.ended:
                     status, reason, cause = out.status, out.reason, out.cause
                     break
-                self.source.set_current(out.current_a)
+                try:
+                    self.source.set_current(out.current_a)
+                except TimeoutError as exc:  # the link is down: the setpoint is not delivered,
+                    # the driver's lease turns its output off and the tick ends the session on
+                    # the telemetry's loss (one owner of that reason)
+                    if not setpoint_undelivered:
+                        log.warning("setpoint not delivered: %s", exc)
+                    setpoint_undelivered = True
         except DiskFullError as exc:  # the folder's file system is full: rows end at a whole one
             log.info("session folder full: %s", exc)
             status, reason, cause = "aborted", exc.reason, "host"

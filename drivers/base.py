@@ -139,6 +139,12 @@ class CurrentSourceDevice(Protocol):
     def set_current(self, current_a: float) -> object:
         """Command the wire current, A (0 … the device's limit)."""
 
+    def set_probe_current(self, current_a: float) -> None:
+        """Hold a small probe current while the output is enabled, A (0 = off, at most 0.1 A;
+        ValueError outside): the device drives the larger of the setpoint and the probe, so the
+        wire's resistance is measured while it cools. Everything that turns the output off turns
+        the probe off too (it stays off until set again)."""
+
     def latest(self) -> Telemetry | None:
         """The newest telemetry frame, or None before the first."""
 

@@ -314,6 +314,19 @@ class CurrentSource:
         """The setpoint lease in force, s (the device default until :meth:`set_lease`)."""
         return p.LEASE_DEFAULT_S if self._cfg_lease_s is None else self._cfg_lease_s
 
+    def set_probe_current(self, current_a: float) -> None:
+        """Probe current, A (0 = off, else up to :data:`~smabench.drivers.protocol.PROBE_MAX_A`,
+        0.1 A; sent in mA): while the output is enabled the device regulates the larger of the
+        setpoint and the probe, so the wire's resistance is measured while it cools (setpoint 0).
+        Waits for the ACK. Refused locally (ValueError, nothing sent) outside 0 … 0.1 A.
+
+        Not leased (it is not a setpoint: the telemetry's setpoint stays the host's) and not
+        stored: everything that turns the output off (``enable(False)``, :meth:`make_safe`, the
+        host timeout, the lease, a latched fault, a reset) turns the probe off too, and it stays
+        off until the next call; a reconnect does not re-apply it (PROTOCOL.md, SET_PROBE)."""
+        type_, payload = p.set_probe(current_a)
+        self._command(type_, payload)
+
     def get_calibration(self) -> p.Calibration:
         """The calibration the device uses (GET_CALIBRATION), also kept in :attr:`calibration`.
         Telemetry flag ``CAL_DEFAULT`` says when the EEPROM held none (defaults in use)."""

@@ -1,4 +1,4 @@
-"""Codec of the current-driver serial protocol, version 2 (``firmware/PROTOCOL.md``).
+"""Codec of the current-driver serial protocol, version 4 (``firmware/PROTOCOL.md``).
 
 Pure functions and small value types, no I/O: COBS framing, CRC-16/CCITT-FALSE, packet build and
 parse, the command table (struct formats of every host → device command, in one place), ACK,
@@ -18,7 +18,7 @@ import struct
 from dataclasses import dataclass, field
 from enum import IntEnum, IntFlag
 
-PROTOCOL_VERSION = 3  # 3: SET_CALIBRATION carries the wire-voltage offset
+PROTOCOL_VERSION = 4  # 3: SET_CALIBRATION carries the wire-voltage offset; 4: SET_PROBE
 MAX_PAYLOAD = 60
 MIN_PACKET = 4  # seq, type, CRC
 MAX_PACKET = MAX_PAYLOAD + 4  # 64
@@ -32,6 +32,9 @@ HOST_TIMEOUT_RANGE_S = (0.020, 5.000)
 TELEMETRY_PERIOD_RANGE_S = (0.005, 1.000)
 LEASE_DEFAULT_S = 0.250
 LEASE_RANGE_S = (0.020, 5.000)
+PROBE_MAX_A = 0.100
+"""SET_PROBE (protocol 4): the probe current is 0 (off, the reset state) … this, A (PROBE_MAX_MA in
+proto.h). Held while the output is enabled; everything that turns the output off turns it off."""
 TELEMETRY_LEN = 29
 TEMP_NONE = 0x7FFF  # i16 temperatures: not available / fault
 U16_NONE = 0xFFFF  # u16 measurements: not available
@@ -72,6 +75,7 @@ class MsgType(IntEnum):
     GET_CALIBRATION = 0x0A
     SET_HEAT_MODEL = 0x0B
     GET_HEAT_MODEL = 0x0C
+    SET_PROBE = 0x0D  # protocol 4
     ACK = 0x80
     TELEMETRY = 0x90
 
@@ -384,6 +388,13 @@ COMMANDS: dict[MsgType, Command] = {
             "wire heat model into EEPROM (mΩ, 0.1 mJ/K, 0.01 mW/K, 0.1 °C); refused while enabled",
         ),
         Command(MsgType.GET_HEAT_MODEL, "<", (), "reply data: the SET_HEAT_MODEL payload"),
+        Command(
+            MsgType.SET_PROBE,
+            "<H",
+            ("probe_ma",),
+            "probe current 0 (off) … 100 mA, held while enabled (the sink regulates max(setpoint, "
+            "probe)); not leased, not stored; off with the output",
+        ),
     )
 }
 
@@ -470,6 +481,14 @@ def set_heat_model(model: HeatModel) -> tuple[MsgType, bytes]:
 
 def get_heat_model() -> tuple[MsgType, bytes]:
     return MsgType.GET_HEAT_MODEL, b""
+
+
+def set_probe(current_a: float) -> tuple[MsgType, bytes]:
+    """SET_PROBE; the probe current in A (0 = off, else up to :data:`PROBE_MAX_A`, 0.1 A), sent
+    rounded to 1 mA."""
+    if not 0.0 <= current_a <= PROBE_MAX_A + 5e-7:  # what rounds to 100 mA is 100 mA
+        raise ValueError(f"probe current {current_a} A outside 0 … {PROBE_MAX_A} A (0 = off)")
+    return MsgType.SET_PROBE, command_payload(MsgType.SET_PROBE, _ma(current_a, "probe current"))
 
 
 def _q15(gain: float, name: str) -> int:

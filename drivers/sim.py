@@ -11,8 +11,8 @@ drives). The owner of the clock — the offline closed loop, a test — advances
   back through the codec; the core's 1 ms control tick runs with the wire current the reference
   sink delivers (:class:`smabench.hardware.LinearSink`) into the plant's resistance, and its
   telemetry frames are decoded. So the lease, the host timeout (0.25 s each of simulated time),
-  the latched faults (open wire, the energy budget's over-temperature, …), the clamps and the
-  ACK codes are the firmware's own, not a re-implementation.
+  the latched faults (open wire, the energy budget's over-temperature, …), the clamps, the
+  probe current (SET_PROBE) and the ACK codes are the firmware's own, not a re-implementation.
 - :class:`SimDisplacementSensor` (a :class:`~smabench.drivers.base.DisplacementDevice`): the
   plant's slider position with its sensor noise; flagged NaN samples while a failure is
   injected.
@@ -276,6 +276,16 @@ class SimCurrentSource:
             )
         with self.plant.lock:
             return p.Status(self._command(*p.set_current(current_a)).status)
+
+    def set_probe_current(self, current_a: float) -> None:
+        """SET_PROBE: the probe current held while enabled, A (0 = off, at most 0.1 A;
+        ValueError outside, nothing sent). The core's own behaviour (not a re-implementation):
+        max(setpoint, probe), not leased, off with everything that turns the output off."""
+        type_, payload = p.set_probe(current_a)
+        with self.plant.lock:
+            ack = self._command(type_, payload)
+            if ack.status != p.Status.OK:
+                raise ValueError(f"SET_PROBE {current_a} A refused: {ack.status_name}")
 
     def set_limits(self, current_limit_a: float, host_timeout_s: float) -> None:
         with self.plant.lock:

@@ -182,6 +182,44 @@ def test_unknown_command_rejected(cs):
     assert cs.link_ok
 
 
+def test_probe_current_measures_the_wire_at_setpoint_0(cs, dev):
+    """SET_PROBE (protocol 4): at setpoint 0 the output holds the probe current, so the Kelvin
+    voltage gives the wire's R while it cools; ENABLE 0 takes it off (and it stays off)."""
+    r_ohm = dev.electrical.resistance_ohm
+    frames: list[p.Telemetry] = []
+    cs.subscribe(frames.append)
+    tx = cs.counters().tx_frames
+    for bad in (0.101, -0.01, math.nan):
+        with pytest.raises(ValueError, match="probe current"):
+            cs.set_probe_current(bad)
+    assert cs.counters().tx_frames == tx  # refused on the host: nothing sent
+    assert cs.set_current(0.0, wait=True) == p.Status.OK
+    cs.set_probe_current(0.05)  # waits for its ACK
+    cs.enable(True)
+    i, t = first_frame(frames, lambda t: t.enabled and abs(t.current_a - 0.05) <= 0.004)
+    # settled: both ADS1115 channels' last windows (8 ms each, alternating) at the probe current
+    _, t = first_frame(frames, lambda f: f.t_ms >= t.t_ms + 50 and not math.isnan(f.voltage_v)
+                       and not math.isnan(f.precise_current_a), i)  # fmt: skip
+    assert t.setpoint_a == 0.0 and not t.flags & (F.LEASE_EXPIRED | F.HOST_TIMEOUT)
+    assert dev.call(lambda fw: fw.current_ma) == pytest.approx(50.0, abs=3.0)  # on the wire
+    # V = I·R at the probe current: within the ADS1115's LSBs (125 µV, 78 µA) and 3 % + 10 mA
+    # of pairing, against the shunt channel and the fast path
+    assert t.voltage_v == pytest.approx(r_ohm * t.precise_current_a, rel=0.01, abs=2.5e-4)
+    assert t.voltage_v == pytest.approx(r_ohm * t.current_a, rel=0.1)
+    # still held 300 ms later (device time); that it needs no lease: firmware/host/test_core.c
+    _, later = first_frame(frames, lambda t: t.t_ms >= frames[i].t_ms + 300, i)
+    assert later.enabled and abs(later.current_a - 0.05) <= 0.004
+    cs.enable(False)
+    j, off = first_frame(frames, lambda t: not t.enabled, i)
+    j, zero = first_frame(frames, lambda t: t.t_ms >= off.t_ms + 10, j)
+    assert zero.current_a < OFF_A and not zero.enabled
+    assert dev.call(lambda fw: (fw.current_ma, fw.state.probe_ma)) == (0.0, 0)
+    cs.enable(True)  # the probe stays off until it is set again
+    j, on = first_frame(frames, lambda t: t.enabled, j)
+    _, still = first_frame(frames, lambda t: t.t_ms >= on.t_ms + 20, j)
+    assert still.enabled and still.current_a < OFF_A
+
+
 # ------------------------------------------------------------------ faults and safety
 def test_open_wire_latches_and_refuses_enable(cs, dev):
     cs.set_current(1.0)
@@ -520,6 +558,7 @@ REPLAY = [
     (lambda cs: cs.enable(False), "030802035f0300"),
     (lambda cs: cs.make_safe(), "030902036f3400"),
     (lambda cs: cs.set_lease(0.5), "070a08f401ee8a00"),
+    (lambda cs: cs.set_probe_current(0.05), "040b0d320379bb00"),  # SET_PROBE 50 mA (protocol 4)
 ]
 
 
@@ -527,11 +566,11 @@ def test_byte_replay():
     fake = FakeSerial()
     cs = CurrentSource(fake, keepalive=False, telemetry_period_s=0.01)
     cs.connect()
-    # lone delimiter (flush), IDENTIFY v3 seq 0, SET_TELEMETRY 10 ms seq 1
-    assert p.PROTOCOL_VERSION == 3
+    # lone delimiter (flush), IDENTIFY v4 seq 0, SET_TELEMETRY 10 ms seq 1
+    assert p.PROTOCOL_VERSION == 4
     assert fake.frames == [
         b"\x00",
-        bytes.fromhex("01050103cecf00"),
+        bytes.fromhex("0105010429bf00"),
         bytes.fromhex("0401050a034ff600"),
     ]
     for call, frame in REPLAY:
@@ -539,8 +578,8 @@ def test_byte_replay():
         call(cs)
         assert bytes(fake.written[n:]).hex() == frame
     n = len(fake.written)
-    cs.close()  # make_safe: ENABLE 0 seq 11
-    assert bytes(fake.written[n:]) == p.encode_frame(11, p.MsgType.ENABLE, b"\x00")
+    cs.close()  # make_safe: ENABLE 0 seq 12
+    assert bytes(fake.written[n:]) == p.encode_frame(12, p.MsgType.ENABLE, b"\x00")
 
 
 def test_keepalive_bytes():

@@ -19,9 +19,10 @@ Since the stand-ins run the real firmware core, these are the firmware's behavio
 ``make_safe`` is idempotent, never raises (also before connect and after close) and
 the output is off afterwards — checked on the device side, the current the plant receives;
 ``set_current`` is reflected in the telemetry and on the device side; ``enable(False)`` turns
-the output off; out-of-range setpoints are refused; sensor samples carry a finite position or
-invalid flags, and an injected sensor failure comes back as a flagged sample, never an
-exception. Waits poll a condition against a generous deadline (simulated time for ``sim``), so
+the output off; out-of-range setpoints are refused; a probe current (``set_probe_current``) is
+held at setpoint 0 past the lease and goes off with the output; sensor samples carry a finite
+position or invalid flags, and an injected sensor failure comes back as a flagged sample, never
+an exception. Waits poll a condition against a generous deadline (simulated time for ``sim``), so
 the suite holds on a busy machine.
 """
 
@@ -304,6 +305,34 @@ def test_the_lease_expires_while_the_link_is_kept_alive(rig):
     assert rig.wait(lambda: rig.wire_current_a() == 0.0)  # and on the device side
     rig.source.enable(True)  # no fault: ENABLE is accepted, the event is cleared
     assert _frame(rig, lambda t: bool(t.flags & p.Flag.ENABLED)).flags & p.Flag.LEASE_EXPIRED == 0
+
+
+PROBE_A = 0.05
+
+
+def test_the_probe_current_is_held_at_setpoint_0_and_goes_off_with_the_output(rig):
+    """set_probe_current (protocol 4): at setpoint 0 the wire gets the probe current, also past
+    the setpoint lease (the probe is not leased); enable(False) ends it and ENABLE alone does not
+    bring it back; out of range is refused on the host."""
+    for bad in (-0.01, 0.101, math.nan):
+        with pytest.raises(ValueError):
+            rig.source.set_probe_current(bad)
+    rig.source.set_current(0.0)
+    rig.source.set_probe_current(PROBE_A)
+    rig.source.enable(True)
+    on = _frame(rig, lambda t: t.enabled and abs(t.current_a - PROBE_A) < 0.005)
+    assert rig.wait(lambda: abs(rig.wire_current_a() - PROBE_A) < 0.005), rig.wire_current_a()
+    rig.wait_s = max(rig.wait_s, 4 * LEASE_S)
+    later = _frame(rig, lambda t: t.t_ms >= on.t_ms + 2 * LEASE_S * 1e3)
+    assert later.enabled and not later.flags & p.Flag.LEASE_EXPIRED, later
+    assert later.setpoint_a == 0.0 and abs(later.current_a - PROBE_A) < 0.005, later
+    rig.source.enable(False)
+    assert rig.wait(lambda: rig.wire_current_a() == 0.0)  # on the device side
+    rig.source.enable(True)
+    back = _frame(rig, lambda t: bool(t.flags & p.Flag.ENABLED))
+    still = _frame(rig, lambda t: t.t_ms >= back.t_ms + 30)
+    assert still.enabled and still.current_a < 0.005 and rig.wire_current_a() == 0.0, still
+    rig.source.make_safe()
 
 
 def test_the_host_timeout_turns_the_output_off_when_the_host_falls_silent(rig):

@@ -327,7 +327,7 @@ def wait_until(cond, timeout_s: float, what: str):
 
 # ------------------------------------------------------------------ the driver on the firmware
 def test_handshake_and_version(cs):
-    assert cs.info == p.DeviceInfo(3, (3, 0, 0), 2.5, "SMA-CD328")
+    assert cs.info == p.DeviceInfo(4, (4, 0, 0), 2.5, "SMA-CD328")
     assert cs.link_ok
     t = cs.wait_telemetry(timeout_s=WAIT_S)
     assert not t.enabled and t.duty == 0.0

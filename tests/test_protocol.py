@@ -164,8 +164,8 @@ def test_identify_reply_vector():
     ack = p.Ack.from_payload(payload)
     assert (ack.type, ack.status) == (p.MsgType.IDENTIFY, p.Status.OK)
     info = p.DeviceInfo.from_data(ack.data)
-    assert info == p.DeviceInfo(3, (3, 0, 0), 2.5, "SMA-CD328")
-    assert info.firmware == "3.0.0"
+    assert info == p.DeviceInfo(4, (4, 0, 0), 2.5, "SMA-CD328")
+    assert info.firmware == "4.0.0"
     assert info.to_data() == ack.data
 
 
@@ -257,6 +257,7 @@ def test_command_table_matches_spec():
         p.MsgType.GET_CALIBRATION: 0,
         p.MsgType.SET_HEAT_MODEL: 8,
         p.MsgType.GET_HEAT_MODEL: 0,
+        p.MsgType.SET_PROBE: 2,
     }
     assert {t: c.size for t, c in p.COMMANDS.items()} == sizes
 
@@ -283,11 +284,12 @@ def test_command_table_matches_firmware_header():
     assert defs["LEASE_DEFAULT_MS"] == round(p.LEASE_DEFAULT_S * 1000)
     assert defs["CUT_STARTUP_MS"] == round(p.CUT_STARTUP_S * 1000)
     assert defs["CAL_LEN"] == p.COMMANDS[p.MsgType.SET_CALIBRATION].size
+    assert defs["PROBE_MAX_MA"] == round(p.PROBE_MAX_A * 1000)
 
 
 def test_unit_builders():
     M = p.MsgType
-    assert p.identify() == (M.IDENTIFY, b"\x03")
+    assert p.identify() == (M.IDENTIFY, b"\x04")
     assert p.enable(True) == (M.ENABLE, b"\x01")
     assert p.enable(False) == (M.ENABLE, b"\x00")
     assert p.set_current(1.0) == (M.SET_CURRENT, b"\xe8\x03")
@@ -300,6 +302,9 @@ def test_unit_builders():
     assert p.set_lease(0.25) == (M.SET_LEASE, b"\xfa\x00")
     assert p.get_calibration() == (M.GET_CALIBRATION, b"")
     assert p.get_heat_model() == (M.GET_HEAT_MODEL, b"")
+    assert p.set_probe(0.05) == (M.SET_PROBE, b"\x32\x00")
+    assert p.set_probe(0.1) == (M.SET_PROBE, b"\x64\x00")
+    assert p.set_probe(0) == (M.SET_PROBE, b"\x00\x00")
     for bad in (
         lambda: p.set_lease(0.019),
         lambda: p.set_lease(5.001),
@@ -308,11 +313,32 @@ def test_unit_builders():
         lambda: p.set_limits(1.0, 0.01),
         lambda: p.set_telemetry(0.001),
         lambda: p.set_telemetry(2.0),
+        lambda: p.set_probe(0.101),
+        lambda: p.set_probe(-0.001),
+        lambda: p.set_probe(math.nan),
     ):
         with pytest.raises(ValueError):
             bad()
     with pytest.raises(TypeError):
         p.command_payload(M.SET_LIMITS, 1)
+
+
+def test_set_probe_frame_bytes():
+    """SET_PROBE (protocol 4) byte for byte: seq 31, type 0x0D, u16 probe current in mA."""
+    packet = bytes((31, 0x0D, 50, 0))  # 50 mA
+    crc = crc_bitwise(packet)
+    assert crc == 0x6A2F
+    assert p.build_packet(31, p.MsgType.SET_PROBE, p.set_probe(0.05)[1]) == packet + b"\x2f\x6a"
+    # COBS: 1f 0d 32 | 00 | 2f 6a -> 04 1f 0d 32 03 2f 6a, then the delimiter
+    frame = bytes.fromhex("041f0d32032f6a00")
+    assert p.encode_frame(31, p.MsgType.SET_PROBE, p.set_probe(0.05)[1]) == frame
+    assert p.decode_frame(frame) == p.Packet(31, p.MsgType.SET_PROBE, b"\x32\x00")
+    good = {v[1]: v for v in GOOD if v[0] == "frames.txt"}
+    assert good["set_probe_50ma"][2:] == (31, 0x0D, b"\x32\x00", frame)
+    # the device's answers: OK, and OUT_OF_RANGE above 100 mA
+    assert p.encode_frame(21, p.MsgType.ACK, p.Ack(31, p.MsgType.SET_PROBE, p.Status.OK)
+                          .to_payload()) == good["ack_set_probe_ok"][5]  # fmt: skip
+    assert p.Ack.from_payload(good["ack_set_probe_out_of_range"][4]).status == p.Status.OUT_OF_RANGE
 
 
 def test_telemetry_parse():

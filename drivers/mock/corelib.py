@@ -137,6 +137,7 @@ class CoreState(ctypes.Structure):
         ("enabled", ctypes.c_uint8),
         ("flags", ctypes.c_uint16),
         ("setpoint_ma", ctypes.c_uint16),
+        ("probe_ma", ctypes.c_uint16),
         ("limit_ma", ctypes.c_uint16),
         ("host_timeout_ms", ctypes.c_uint16),
         ("lease_ms", ctypes.c_uint16),

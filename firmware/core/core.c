@@ -1,4 +1,4 @@
-/* Portable firmware core (core.h, PROTOCOL.md v2): commands, current control of the linear sink,
+/* Portable firmware core (core.h, PROTOCOL.md v4): commands, current control of the linear sink,
  * measurements, safety. The electrical numbers come from electrical.h, generated from
  * firmware/hardware/electrical.toml. */
 #include <math.h>
@@ -71,6 +71,7 @@ static uint16_t xadc_timer;
 static uint16_t slow_timer;
 /* heat model, precomputed from s.heat */
 static float heat_r_ohm, heat_g_w_k, heat_dt_over_c;
+static uint16_t probe_cap_ma = PROBE_MAX_MA; /* the probe within PROBE_MAX_MW on heat_r_ohm */
 static uint32_t heat_i2_sum; /* sum of I^2 over the current model step, mA^2 */
 static uint8_t heat_ticks;
 #define HEAT_STEP_MS 10u
@@ -130,10 +131,14 @@ static void set_flag(uint16_t flag, uint8_t on)
     s.flags = on ? (uint16_t)(s.flags | flag) : (uint16_t)(s.flags & ~flag);
 }
 
+/* Everything that turns the output off goes through here (ENABLE 0, the host timeout, the lease,
+ * every latched fault: e-stop, cut, over-temperature, ...; reset): the probe current goes off with
+ * it and stays off until the next SET_PROBE (PROTOCOL.md "Safety"). */
 static void output_off(void)
 {
     s.enabled = 0;
     s.duty = 0;
+    s.probe_ma = 0;
     ref1_q8 = ref2_q8 = ref2_prev_q8 = 0;
     overcurrent_ms = 0;
     open_wire_ms = 0;
@@ -209,6 +214,8 @@ static void heat_apply(void)
     heat_r_ohm = (float)s.heat.r_mohm * 1e-3f;
     heat_g_w_k = (float)s.heat.g * 1e-5f;
     heat_dt_over_c = (float)HEAT_STEP_MS * 1e-3f / ((float)s.heat.c * 1e-4f); /* step / (J/K) */
+    float cap_ma = 1e3f * sqrtf((float)PROBE_MAX_MW * 1e-3f / heat_r_ohm);
+    probe_cap_ma = cap_ma < (float)PROBE_MAX_MA ? (uint16_t)cap_ma : PROBE_MAX_MA;
 }
 
 static void load_eeprom(void)
@@ -245,7 +252,8 @@ static uint8_t expected_len(uint8_t type)
     case MSG_ENABLE: return 1;
     case MSG_SET_CURRENT:
     case MSG_SET_TELEMETRY:
-    case MSG_SET_LEASE: return 2;
+    case MSG_SET_LEASE:
+    case MSG_SET_PROBE: return 2;
     case MSG_SET_LIMITS: return 4;
     case MSG_SET_CALIBRATION: return CAL_LEN;
     case MSG_SET_HEAT_MODEL: return 8;
@@ -288,6 +296,18 @@ static uint8_t cmd_set_current(uint16_t ma)
         return ST_CLAMPED;
     }
     s.setpoint_ma = ma;
+    return ST_OK;
+}
+
+/* SET_PROBE: a small current held while the output is enabled, so the wire's resistance is
+ * measured while it cools. Not leased (it is not heating: <= 100 mA) and not a setpoint: the
+ * setpoint, its lease and its telemetry field are untouched. Accepted enabled or disabled. */
+static uint8_t cmd_set_probe(uint16_t ma)
+{
+    if (ma > PROBE_MAX_MA) {
+        return ST_OUT_OF_RANGE;
+    }
+    s.probe_ma = ma;
     return ST_OK;
 }
 
@@ -428,6 +448,7 @@ static uint8_t run_command(const frame_packet_t *p, uint8_t *data, uint8_t *data
     case MSG_GET_CALIBRATION: cal_pack(data); *data_len = CAL_LEN; return ST_OK;
     case MSG_SET_HEAT_MODEL: return cmd_set_heat_model(a);
     case MSG_GET_HEAT_MODEL: heat_pack(data); *data_len = 8; return ST_OK;
+    case MSG_SET_PROBE: return cmd_set_probe(get_u16(a));
     default: return ST_OK; /* PING: only feeds the host watchdog, never the lease */
     }
 }
@@ -658,14 +679,28 @@ static void check_faults(uint16_t sp_ma)
     }
 }
 
+/* The current the sink is asked for: while enabled the larger of the setpoint and the probe,
+ * within the active limit; 0 while off. */
+static uint16_t regulated_ma(void)
+{
+    if (!s.enabled) {
+        return 0;
+    }
+    uint16_t probe = s.probe_ma < probe_cap_ma ? s.probe_ma : probe_cap_ma;
+    uint16_t sp = s.setpoint_ma > probe ? s.setpoint_ma : probe;
+    return sp < s.limit_ma ? sp : s.limit_ma;
+}
+
 /* Energy budget: C dT/dt = I^2 R - G (T - Ta), with the larger of the set and the measured
- * resistance and the larger of the measured and the commanded current. Runs always (the wire
- * cools while the output is off). I^2 is summed every tick, the model steps every 10 ms. */
+ * resistance and the larger of the measured and the commanded current (setpoint or probe). Runs
+ * always (the wire cools while the output is off). I^2 is summed every tick, the model steps
+ * every 10 ms. */
 static void heat_tick(void)
 {
     uint16_t i_ma = s.current_ma;
-    if (s.enabled && s.setpoint_ma > i_ma) {
-        i_ma = s.setpoint_ma;
+    uint16_t sp_ma = regulated_ma();
+    if (sp_ma > i_ma) {
+        i_ma = sp_ma;
     }
     heat_i2_sum += (uint32_t)i_ma * i_ma; /* 10 ticks of (2.8 A)^2 in mA^2: 7.8e7, fits */
     if (++heat_ticks >= HEAT_STEP_MS) {
@@ -924,7 +959,7 @@ void core_control_tick(void)
         s.flags |= FLAG_LEASE_EXPIRED;
     }
     heat_tick();
-    uint16_t sp = s.setpoint_ma < s.limit_ma ? s.setpoint_ma : s.limit_ma;
+    uint16_t sp = regulated_ma(); /* max(setpoint, probe) within the limit; 0 while off */
     uint8_t dissipating = sp > dissipation_cap_ma;
     if (dissipating) {
         sp = dissipation_cap_ma;

@@ -1,5 +1,5 @@
 /* Portable firmware core: frame codec, commands, current control of the linear sink, safety
- * (firmware/PROTOCOL.md, protocol version 3). No AVR headers here; all I/O goes through hal.h. */
+ * (firmware/PROTOCOL.md, protocol version 4). No AVR headers here; all I/O goes through hal.h. */
 #ifndef SMA_CORE_H
 #define SMA_CORE_H
 #include <stdint.h>
@@ -61,6 +61,8 @@ typedef struct {
     uint8_t enabled;
     uint16_t flags;          /* PROTOCOL.md flags */
     uint16_t setpoint_ma;    /* after clamping; 0 after a lease expiry */
+    uint16_t probe_ma;       /* SET_PROBE: held while enabled (max with the setpoint); 0 = off,
+                              * and 0 again whenever the output goes off */
     uint16_t limit_ma;
     uint16_t host_timeout_ms;
     uint16_t lease_ms;

@@ -1,9 +1,9 @@
-/* Constants of firmware/PROTOCOL.md (protocol version 2) shared by the core, the AVR build and
+/* Constants of firmware/PROTOCOL.md (protocol version 4) shared by the core, the AVR build and
  * the host tests. drivers/protocol.py holds the same numbers for the host. */
 #ifndef SMA_PROTO_H
 #define SMA_PROTO_H
 
-#define PROTOCOL_VERSION 3u
+#define PROTOCOL_VERSION 4u /* 4: SET_PROBE (the probe current) */
 
 /* Message types */
 #define MSG_IDENTIFY 0x01u
@@ -18,6 +18,7 @@
 #define MSG_GET_CALIBRATION 0x0Au
 #define MSG_SET_HEAT_MODEL 0x0Bu
 #define MSG_GET_HEAT_MODEL 0x0Cu
+#define MSG_SET_PROBE 0x0Du /* protocol version 4 */
 #define MSG_ACK 0x80u
 #define MSG_TELEMETRY 0x90u
 
@@ -64,7 +65,7 @@
 #define U16_NONE 0xFFFFu  /* u16 measurements: not available */
 
 /* Device identity (IDENTIFY data) */
-#define FW_VERSION_MAJOR 3u
+#define FW_VERSION_MAJOR 4u
 #define FW_VERSION_MINOR 0u
 #define FW_VERSION_PATCH 0u
 #ifndef DEVICE_NAME /* the host library for the Python stand-ins says SMA-CD328-MOCK */
@@ -82,6 +83,9 @@
 #define TELEMETRY_MIN_MS 5u
 #define TELEMETRY_MAX_MS 1000u
 #define TELEMETRY_LEN 29u
+#define PROBE_MAX_MA 100u   /* SET_PROBE: 0 (off, the reset state) ... this; not stored */
+#define PROBE_MAX_MW 20u   /* SET_PROBE: the probe held within this power on the heat model's R (a
+                             * thin 20-ohm wire: 31 mA), so an unleased probe never heats */
 #define OVERCURRENT_MS 5u    /* above limit * 1.2 for this long: latch */
 #define OPEN_WIRE_SET_MA 100u /* setpoint at least this ... */
 #define OPEN_WIRE_MA 20u     /* ... and measured below this ... */

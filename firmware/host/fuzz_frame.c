@@ -92,6 +92,7 @@ static void check_state(void)
     REQUIRE(!!s->enabled == !!fake_output_enabled());
     REQUIRE(s->ambient_cdeg == TEMP_NONE || (s->ambient_cdeg >= -4000 && s->ambient_cdeg <= 12500));
     REQUIRE(s->enabled || (s->duty == 0 && fake_pwm_duty() == 0));
+    REQUIRE(s->probe_ma <= PROBE_MAX_MA);
 }
 
 static void poll(void)
@@ -105,7 +106,10 @@ static void tick(void)
 {
     fake_advance_ms(1);
     core_poll();
+    uint8_t was_on = core_state()->enabled;
     core_control_tick();
+    /* whatever turned the output off in this tick turned the probe current off with it */
+    REQUIRE(!was_on || core_state()->enabled || core_state()->probe_ma == 0);
     drain_tx();
     check_state();
     /* host timeout: off within the timeout of the last valid frame */

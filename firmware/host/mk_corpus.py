@@ -58,6 +58,10 @@ def main():
         + cmd(6) + bytes((2, 44, 0)) + cmd(6) + on + ticks(5),
         b"\x01" + cmd(5, struct.pack("<H", 5)) + bytes((2, 44, 4 | 8 | 32)) + ticks(200)
         + bytes((2, 44, 16)) + ticks(200),
+        # protocol v4: the probe current, held at setpoint 0, off with the output
+        b"\x01" + cmd(13, struct.pack("<H", 80)) + on + ticks(100) + cmd(3, struct.pack("<H", 500))
+        + ticks(50) + cmd(3, struct.pack("<H", 0)) + ticks(50) + cmd(13, struct.pack("<H", 101))
+        + cmd(2, b"\x00") + ticks(20) + on + cmd(13, struct.pack("<H", 100)) + ticks(250),
     ]
     for s in seeds:
         (out / hashlib.sha1(s).hexdigest()).write_bytes(s)

@@ -486,29 +486,30 @@ static void test_commands(void)
               st()->telemetry_period_ms == 0,
           "defaults");
     /* IDENTIFY */
-    CHECK(cmd_u8(MSG_IDENTIFY, 3) == ST_OK, "identify");
-    const uint8_t want[] = {3, 3, 0, 0, 0xC4, 0x09, 'S', 'M', 'A', '-', 'C', 'D', '3', '2', '8'};
+    CHECK(cmd_u8(MSG_IDENTIFY, 4) == ST_OK, "identify");
+    const uint8_t want[] = {4, 4, 0, 0, 0xC4, 0x09, 'S', 'M', 'A', '-', 'C', 'D', '3', '2', '8'};
     CHECK(rxp[0].len == 3 + sizeof want && memcmp(rxp[0].payload + 3, want, sizeof want) == 0,
           "identify data");
     CHECK(cmd_u8(MSG_IDENTIFY, 1) == ST_VERSION_MISMATCH, "version 1 host: mismatch");
     CHECK(cmd_u8(MSG_IDENTIFY, 2) == ST_VERSION_MISMATCH, "version 2 host (no voltage offset): mismatch");
+    CHECK(cmd_u8(MSG_IDENTIFY, 3) == ST_VERSION_MISMATCH, "version 3 host (no SET_PROBE): mismatch");
     CHECK(rxp[0].len == 3 + sizeof want && memcmp(rxp[0].payload + 3, want, sizeof want) == 0,
           "mismatch still sends data");
     /* unknown types */
-    const uint8_t unknown[] = {0x00, 0x0D, 0x80, 0x90, 0xFF};
+    const uint8_t unknown[] = {0x00, 0x0E, 0x80, 0x90, 0xFF};
     for (size_t i = 0; i < sizeof unknown; i++) {
         CHECK(cmd(unknown[i], NULL, 0) == ST_UNKNOWN_COMMAND, "type 0x%02X", unknown[i]);
         CHECK(rxp[0].len == 3, "no data on error");
     }
     /* bad length, for every command */
-    const uint8_t types[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12};
-    const uint8_t lens[] = {1, 1, 2, 4, 2, 0, 0, 2, 6, 0, 8, 0};
+    const uint8_t types[] = {1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13};
+    const uint8_t lens[] = {1, 1, 2, 4, 2, 0, 0, 2, 8, 0, 8, 0, 2};
     uint8_t junk[10] = {1, 0, 1, 0, 1, 0, 1, 0, 1, 0};
     for (size_t i = 0; i < sizeof types; i++) {
         CHECK(cmd(types[i], junk, (uint8_t)(lens[i] + 1)) == ST_BAD_LENGTH, "len+1 type %u", types[i]);
         if (lens[i]) CHECK(cmd(types[i], junk, (uint8_t)(lens[i] - 1)) == ST_BAD_LENGTH, "len-1 type %u", types[i]);
     }
-    CHECK(!st()->enabled && st()->setpoint_ma == 0, "bad length changed nothing");
+    CHECK(!st()->enabled && st()->setpoint_ma == 0 && st()->probe_ma == 0, "bad length changed nothing");
     /* ENABLE */
     CHECK(cmd_u8(MSG_ENABLE, 2) == ST_OUT_OF_RANGE && !st()->enabled, "enable 2");
     CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK && st()->enabled && (st()->flags & FLAG_ENABLED) &&
@@ -747,6 +748,188 @@ static void test_lease(void)
     CHECK(off2 >= 49 && off2 <= 51, "50 ms lease: off after %d ms", off2);
     CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && !(st()->flags & FLAG_LEASE_EXPIRED),
           "CLEAR_FAULTS clears it");
+}
+
+/* The probe current (SET_PROBE, protocol 4): held while the output is enabled, also at setpoint 0
+ * and without the lease; the sink regulates max(setpoint, probe); everything that turns the
+ * output off turns the probe off (and it stays off until the next SET_PROBE); the energy budget
+ * heats the model with it. */
+static int probe_off_after(int max_ms)
+{
+    for (int t = 1; t <= max_ms; t++) {
+        tick();
+        if (!st()->enabled) return t;
+    }
+    return -1;
+}
+
+static void test_probe(void)
+{
+    reset(0);
+    ticks(CUT_STARTUP_MS + 100); /* the cut closed, the NTC read */
+    CHECK(st()->probe_ma == 0, "probe off at reset");
+    /* range: 0 ... 100 mA, accepted while disabled */
+    CHECK(cmd_u16(MSG_SET_PROBE, PROBE_MAX_MA + 1) == ST_OUT_OF_RANGE && st()->probe_ma == 0,
+          "101 mA refused");
+    CHECK(cmd_u16(MSG_SET_PROBE, 65535) == ST_OUT_OF_RANGE && st()->probe_ma == 0, "65535 mA refused");
+    CHECK(cmd_u16(MSG_SET_PROBE, PROBE_MAX_MA) == ST_OK && st()->probe_ma == 100,
+          "100 mA accepted while disabled");
+    ticks(20);
+    CHECK(fake_current_a() < 0.001 && st()->duty == 0, "disabled: no probe current");
+    /* enabled at setpoint 0, PINGs only, 1 s (four leases): the probe is held, not leased */
+    cmd_limits(2500, 1000);
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK && st()->setpoint_ma == 0, "enable at setpoint 0");
+    for (int i = 0; i < 10; i++) {
+        ticks(100);
+        CHECK(cmd(MSG_PING, NULL, 0) == ST_OK, "ping");
+    }
+    printf("probe: 100 mA at setpoint 0 for 1 s (PINGs only): wire %.1f mA, read %u mA, "
+           "V %u x 0.1 mV (0.44 Ohm)\n", fake_current_a() * 1000.0, st()->current_ma,
+           st()->voltage_dmv);
+    CHECK(st()->enabled && !(st()->flags & FLAG_LEASE_EXPIRED) && st()->setpoint_ma == 0,
+          "held for 1 s without SET_CURRENT: flags 0x%04x", st()->flags);
+    CHECK(fabs(fake_current_a() - 0.100) < 0.003 && abs((int)st()->current_ma - 100) <= 5,
+          "100 mA on the wire: %.1f mA, read %u mA", fake_current_a() * 1000.0, st()->current_ma);
+    CHECK(st()->voltage_dmv != U16_NONE &&
+              fabs(st()->voltage_dmv - fake_current_a() * 0.44 * 1e4) <= 0.02 * 440 + 2,
+          "the wire voltage at the probe current: %u x 0.1 mV", st()->voltage_dmv);
+    /* max(setpoint, probe) */
+    CHECK(cmd_u16(MSG_SET_PROBE, 50) == ST_OK, "probe 50 mA while enabled");
+    CHECK(cmd_u16(MSG_SET_CURRENT, 30) == ST_OK, "setpoint 30 mA, below the probe");
+    ticks(40);
+    CHECK(fabs(fake_current_a() - 0.050) < 0.003, "setpoint 30 < probe 50: %.1f mA",
+          fake_current_a() * 1000.0);
+    CHECK(cmd_u16(MSG_SET_CURRENT, 500) == ST_OK, "setpoint 500 mA");
+    ticks(40);
+    CHECK(fabs(fake_current_a() - 0.500) < 0.005 && st()->probe_ma == 50,
+          "setpoint 500 > probe 50: %.1f mA", fake_current_a() * 1000.0);
+    CHECK(cmd_u16(MSG_SET_CURRENT, 0) == ST_OK, "setpoint 0");
+    ticks(40);
+    CHECK(fabs(fake_current_a() - 0.050) < 0.003 && st()->enabled,
+          "back to the probe at setpoint 0: %.1f mA", fake_current_a() * 1000.0);
+    /* the active limit caps the probe too */
+    cmd_limits(30, 1000);
+    ticks(40);
+    CHECK(fabs(fake_current_a() - 0.030) < 0.004, "limit 30 mA: %.1f mA", fake_current_a() * 1000.0);
+    cmd_limits(2500, 1000);
+    ticks(40);
+    /* ENABLE 0 */
+    CHECK(cmd_u8(MSG_ENABLE, 0) == ST_OK && st()->probe_ma == 0 && !fake_output_enabled() &&
+              fake_pwm_duty() == 0,
+          "ENABLE 0: output and probe off");
+    ticks(5);
+    CHECK(fake_current_a() < 0.001, "no current 5 ms after ENABLE 0");
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK, "enable again");
+    ticks(40);
+    CHECK(fake_current_a() < 0.001 && st()->duty == 0, "no probe until the next SET_PROBE");
+    /* the host timeout (1 s) */
+    CHECK(cmd_u16(MSG_SET_PROBE, 80) == ST_OK, "probe 80 mA");
+    int off_at = probe_off_after(1500);
+    CHECK(off_at >= 999 && off_at <= 1001 && (st()->flags & FLAG_HOST_TIMEOUT) && st()->probe_ma == 0,
+          "host timeout: off after %d ms, probe %u", off_at, st()->probe_ma);
+    ticks(5);
+    CHECK(fake_current_a() < 0.001, "no current after the host timeout");
+    /* the lease still ends a setpoint above the probe, and the probe with it */
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK && cmd_u16(MSG_SET_PROBE, 80) == ST_OK &&
+              cmd_u16(MSG_SET_CURRENT, 600) == ST_OK,
+          "probe 80 mA, setpoint 600 mA");
+    off_at = -1;
+    for (int t = 1; t <= 600 && off_at < 0; t++) {
+        tick();
+        if (t % 20 == 0) cmd(MSG_PING, NULL, 0);
+        if (!st()->enabled) off_at = t;
+    }
+    CHECK(off_at >= 249 && off_at <= 251 && (st()->flags & FLAG_LEASE_EXPIRED) &&
+              st()->setpoint_ma == 0 && st()->probe_ma == 0,
+          "lease expired after %d ms: output, setpoint and probe off", off_at);
+    ticks(5);
+    CHECK(fake_current_a() < 0.001, "no current after the lease");
+    /* ... and a setpoint at or below the probe is leased as any setpoint above 0 */
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK && cmd_u16(MSG_SET_PROBE, 80) == ST_OK &&
+              cmd_u16(MSG_SET_CURRENT, 40) == ST_OK,
+          "probe 80 mA, setpoint 40 mA");
+    off_at = -1;
+    for (int t = 1; t <= 600 && off_at < 0; t++) {
+        tick();
+        if (t % 20 == 0) cmd(MSG_PING, NULL, 0);
+        if (!st()->enabled) off_at = t;
+    }
+    CHECK(off_at >= 249 && off_at <= 251 && st()->probe_ma == 0,
+          "setpoint below the probe: the lease still ends it after %d ms", off_at);
+    /* latched faults: the e-stop, the cut, an external protection */
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && cmd_u8(MSG_ENABLE, 1) == ST_OK &&
+              cmd_u16(MSG_SET_PROBE, 80) == ST_OK,
+          "probe again");
+    ticks(20);
+    CHECK(fabs(fake_current_a() - 0.080) < 0.003, "80 mA");
+    fake_estop(1);
+    tick();
+    CHECK(!st()->enabled && (st()->flags & FLAG_ESTOP) && st()->probe_ma == 0, "e-stop: probe off");
+    fake_estop(0);
+    tick();
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && cmd_u8(MSG_ENABLE, 1) == ST_OK, "cleared");
+    ticks(20);
+    CHECK(fake_current_a() < 0.001, "after the e-stop: no probe until the next SET_PROBE");
+    cmd_u16(MSG_SET_PROBE, 80);
+    ticks(20);
+    fake_cut_hold(1);
+    tick();
+    CHECK(!st()->enabled && (st()->flags & FLAG_CUT_TRIP) && st()->probe_ma == 0, "cut: probe off");
+    fake_cut_hold(0);
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK && cmd_u8(MSG_ENABLE, 1) == ST_OK, "cleared");
+    cmd_u16(MSG_SET_PROBE, 80);
+    ticks(20);
+    core_latch_fault(FLAG_OVERCURRENT);
+    CHECK(!st()->enabled && st()->probe_ma == 0 && fake_pwm_duty() == 0,
+          "external latch: probe off");
+    CHECK(cmd(MSG_CLEAR_FAULTS, NULL, 0) == ST_OK, "cleared");
+    /* a watchdog reset starts with the probe off (the reset state) */
+    cmd_u16(MSG_SET_PROBE, 80);
+    reset(1);
+    CHECK(st()->probe_ma == 0 && !st()->enabled, "watchdog reset: probe off");
+
+    /* the probe's power cap: PROBE_MAX_MW on the heat model's R. A thin 20 Ohm model wire gets
+     * 31 mA (19.2 mW) of a 99 mA probe, never 196 mW: an unleased probe cannot heat it */
+    reset(0);
+    ticks(CUT_STARTUP_MS + 100);
+    const uint16_t hot[] = {20000, 100, 1, 600}; /* 20 Ohm, 10 mJ/K, 0.01 mW/K, T_max 60 C */
+    CHECK(cmd_words(MSG_SET_HEAT_MODEL, hot, 4) == ST_OK, "thin hot model");
+    cmd_limits(2500, 5000);
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK && cmd_u16(MSG_SET_PROBE, 99) == ST_OK,
+          "enabled, setpoint 0, probe 99 mA asked");
+    ticks(40);
+    CHECK(fabs(fake_current_a() - 0.031) < 0.004, "20 Ohm: the probe capped at 31 mA: %.1f mA",
+          fake_current_a() * 1000.0);
+    CHECK(cmd_u8(MSG_ENABLE, 0) == ST_OK, "off");
+    /* the energy budget heats its model with the (capped) probe, also when the fast path reads
+     * nothing; the model's conductance so small that 19 mW reach T_max */
+    fake_sink()->adc_gain = 0.0; /* the fast path reads 0 mA whatever flows */
+    CHECK(cmd_u8(MSG_ENABLE, 1) == ST_OK, "enabled, setpoint 0, no probe");
+    float start_c = st()->model_c;
+    ticks(3000);
+    CHECK(st()->enabled && !(st()->flags & FLAG_OVERTEMP) && st()->model_c <= start_c + 0.01f,
+          "no probe: the model cools (%.1f -> %.1f C)", (double)start_c, (double)st()->model_c);
+    cmd(MSG_PING, NULL, 0);
+    start_c = st()->model_c;
+    CHECK(cmd_u16(MSG_SET_PROBE, 99) == ST_OK, "probe 99 mA asked (31 mA held)");
+    int trip = -1;
+    for (int t = 1; t <= 40000 && trip < 0; t++) {
+        tick();
+        if (t % 1000 == 0) cmd(MSG_PING, NULL, 0); /* the host timeout (5 s) fed */
+        if (!st()->enabled) trip = t;
+    }
+    double rise_k = 0.031 * 0.031 * 20.0 / 1e-5; /* P/G, K */
+    double want_ms = -1e6 * log((60.0 - 22.0 - rise_k) / (start_c - 22.0 - rise_k));
+    printf("probe in the energy budget: 99 mA asked, 31 mA held into a 20 Ohm, 0.01 mW/K, 10 mJ/K "
+           "model from %.1f C, fast path reading 0: OVERTEMP after %d ms (model alone: %.0f ms)\n",
+           (double)start_c, trip, want_ms);
+    CHECK(trip > 0 && (st()->flags & FLAG_OVERTEMP) && st()->probe_ma == 0,
+          "OVERTEMP latched after %d ms: probe off", trip);
+    CHECK(fabs(trip - want_ms) < 0.1 * want_ms, "tripped at %d ms, the model says %.0f ms", trip,
+          want_ms);
+    fake_sink()->adc_gain = 1.0;
+    fake_eeprom_erase();
+    reset(0);
 }
 
 static void expect_latched(uint16_t flag, const char *what)
@@ -1452,6 +1635,7 @@ int main(int argc, char **argv)
     test_calibration();
     test_host_timeout();
     test_lease();
+    test_probe();
     test_overcurrent();
     test_open_wire();
     test_estop();

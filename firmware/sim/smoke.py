@@ -2,10 +2,10 @@
 """Smoke test of the AVR firmware in the simavr harness (make -C firmware sim-test).
 
 Starts smabench-sim on the .elf, opens the pty it prints, sends IDENTIFY and checks the ACK
-(status OK, protocol 2, device name), checks the control channel (Q, R), measures frame round
+(status OK, protocol 4, device name), checks the control channel (Q, R), measures frame round
 trips through the pty, and runs every safety path from the device side: a current step into
 0.3 and 1 Ohm at the ends of the supply range, the setpoint lease expiring while PINGs go on,
-the e-stop input, the energy budget tripping under 2.5 A demanded for ever (a shortened budget),
+the probe current held at setpoint 0 past the lease and off with ENABLE 0, the e-stop input, the energy budget tripping under 2.5 A demanded for ever (a shortened budget),
 the NTC open and shorted, the thermocouple and its faults, and calibration in EEPROM.
 Python 3 standard library only; COBS and CRC-16/CCITT-FALSE are implemented here so the test
 does not depend on drivers/protocol.py.
@@ -28,11 +28,12 @@ import tty
 
 IDENTIFY, ENABLE, SET_CURRENT, SET_LIMITS, SET_TELEMETRY, CLEAR_FAULTS, PING = range(1, 8)
 SET_LEASE, SET_CALIBRATION, GET_CALIBRATION, SET_HEAT_MODEL, GET_HEAT_MODEL = range(8, 13)
+SET_PROBE = 0x0D  # protocol 4
 ACK, TELEMETRY = 0x80, 0x90
-PROTOCOL_VERSION = 3
+PROTOCOL_VERSION = 4
 FLAG_ENABLED, FLAG_WATCHDOG_RESET, FLAG_LEASE_EXPIRED = 1 << 0, 1 << 4, 1 << 6
 FLAG_OVERTEMP, FLAG_ESTOP, FLAG_NTC_FAULT, FLAG_TC_FAULT = 1 << 7, 1 << 8, 1 << 9, 1 << 10
-ST_OK, ST_FAULT_ACTIVE = 0, 4
+ST_OK, ST_OUT_OF_RANGE, ST_FAULT_ACTIVE = 0, 3, 4
 TEMP_NONE = 0x7FFF
 TELEMETRY_FMT = "<IHHHhHHHHhhHHB"  # PROTOCOL.md, TELEMETRY: 29 bytes
 
@@ -298,6 +299,41 @@ def safety_paths(sim: Sim, link: Link) -> None:
           f"lease: off {dt} ms after the last SET_CURRENT (device time, lease 250)")
     time.sleep(0.02)
     check(sim.state()["current_a"] == 0.0, "no wire current after the lease expired")
+    cmd(link, SET_LEASE, u16(5000))
+
+    # probe current (protocol 4): held at setpoint 0 past the 250 ms lease while only PINGs go
+    # on (it is not leased), the wire voltage measured at it; ENABLE 0 turns it off
+    check(cmd(link, SET_LEASE, u16(250)) == ST_OK, "lease 250 ms")
+    check(cmd(link, SET_PROBE, u16(101)) == ST_OUT_OF_RANGE, "probe 101 mA refused")
+    check(cmd(link, SET_CURRENT, u16(0)) == ST_OK and cmd(link, SET_PROBE, u16(100)) == ST_OK
+          and cmd(link, ENABLE, b"\x01") == ST_OK, "probe 100 mA, setpoint 0, enabled")
+    first = telemetry(link, lambda t: t["flags"] & FLAG_ENABLED and abs(t["ma"] - 100) <= 5)
+    last_ping, held = 0.0, None
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end and held is None:
+        if time.monotonic() - last_ping > 0.05:
+            link.send(PING)
+            last_ping = time.monotonic()
+        pkt = link.recv(0.01)
+        if pkt and pkt[1] == TELEMETRY:
+            t = dict(zip(TELEMETRY_NAMES, struct.unpack(TELEMETRY_FMT, pkt[2]), strict=True))
+            if not t["flags"] & FLAG_ENABLED or t["t_ms"] - first["t_ms"] >= 600:
+                held = t
+    st = sim.state()
+    check(held is not None and held["flags"] & FLAG_ENABLED
+          and not held["flags"] & FLAG_LEASE_EXPIRED and held["sp"] == 0
+          and abs(held["ma"] - 100) <= 5 and abs(st["current_a"] - 0.1) < 0.005,
+          f"probe held {held and held['t_ms'] - first['t_ms']} ms at setpoint 0 with PINGs only: "
+          f"read {held and held['ma']} mA, wire {st['current_a'] * 1000:.1f} mA")
+    check(held["dmv"] != 0xFFFF and abs(held["dmv"] / 1e4 - st["current_a"] * 0.44) < 0.001,
+          f"wire voltage at the probe: {held['dmv'] / 10:.1f} mV (0.44 Ohm)")
+    check(cmd(link, ENABLE, b"\x00") == ST_OK, "ENABLE 0")
+    time.sleep(0.02)
+    check(sim.state()["current_a"] == 0.0, "ENABLE 0: no probe current")
+    check(cmd(link, ENABLE, b"\x01") == ST_OK, "enable again, no SET_PROBE")
+    time.sleep(0.05)
+    check(sim.state()["current_a"] == 0.0, "the probe stays off until the next SET_PROBE")
+    off(link)
     cmd(link, SET_LEASE, u16(5000))
 
     # e-stop input, latched until cleared

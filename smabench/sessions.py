@@ -201,6 +201,33 @@ _WHOLE_AS_FLOAT_MAX = 1e10
 a float column for a CSV reader such as pandas); larger ones are written with an exponent."""
 
 
+def _arrow_array(x: np.ndarray, null: np.ndarray | None = None) -> Any:
+    """A numeric or boolean numpy array as a pyarrow array over the same bytes, ``null`` the
+    cells to leave empty. ``pa.array(ndarray)`` would import pandas to check the argument's
+    type: 0.3–0.5 s the first time a session is written (a stall at a run's first rows)."""
+    import pyarrow as pa
+
+    x = np.ascontiguousarray(x)
+    if x.dtype == np.bool_:
+        kind, data = pa.bool_(), np.packbits(x, bitorder="little")
+    else:
+        kind, data = pa.from_numpy_dtype(x.dtype), x
+    nulls = int(null.sum()) if null is not None else 0
+    validity = pa.py_buffer(np.packbits(~null, bitorder="little")) if nulls else None
+    return pa.Array.from_buffers(kind, len(x), [validity, pa.py_buffer(data)], null_count=nulls)
+
+
+def _arrow_strings(values: Sequence[str]) -> Any:
+    """A pyarrow string array of ``values`` built from its buffers (``pa.array(list)`` and
+    ``pa.scalar(str)`` import pandas too, see :func:`_arrow_array`)."""
+    import pyarrow as pa
+
+    data = [v.encode("utf-8") for v in values]
+    offsets = np.cumsum([0, *map(len, data)]).astype(np.int32)
+    buffers = [None, pa.py_buffer(offsets), pa.py_buffer(b"".join(data))]
+    return pa.Array.from_buffers(pa.string(), len(data), buffers)
+
+
 def _float_text(x: np.ndarray) -> Any:
     """A float64 array as a pyarrow string array, one shortest round-trip text per value
     (pyarrow's compiled formatter, ≈ 4× ``repr``: ``2.5e-7``, ``1e+20``, ``inf``); a whole
@@ -210,30 +237,30 @@ def _float_text(x: np.ndarray) -> Any:
 
     x = np.ascontiguousarray(x, dtype=np.float64)
     nan = np.isnan(x)
-    text = pc.cast(pa.array(x, mask=nan if nan.any() else None), pa.string())
+    text = pc.cast(_arrow_array(x, nan), pa.string())
     with np.errstate(invalid="ignore"):
         whole = (np.trunc(x) == x) & (np.abs(x) < _WHOLE_AS_FLOAT_MAX)
     if whole.any():
-        floats = pc.cast(pa.array(x[whole].astype(np.int64)), pa.string())
-        text = pc.replace_with_mask(text, pa.array(whole),
-                                    pc.binary_join_element_wise(floats, ".0", ""))  # fmt: skip
+        floats = pc.cast(_arrow_array(x[whole].astype(np.int64)), pa.string())
+        dot0, empty = _arrow_strings([".0", ""])
+        text = pc.replace_with_mask(text, _arrow_array(whole),
+                                    pc.binary_join_element_wise(floats, dot0, empty))  # fmt: skip
         minus0 = (x == 0) & np.signbit(x)  # -0.0: the int64 lost its sign
         if minus0.any():
-            text = pc.replace_with_mask(text, pa.array(minus0),
-                                        pa.array(["-0.0"] * int(minus0.sum()), pa.string()))
+            text = pc.replace_with_mask(text, _arrow_array(minus0),
+                                        _arrow_strings(["-0.0"] * int(minus0.sum())))
     return text
 
 
 def _integer_text(x: np.ndarray) -> Any | None:
     """An integer column given as floats as a pyarrow int64 array (NaN null); None when a value
     is not a whole number or beyond int64 (the caller then formats cell by cell)."""
-    import pyarrow as pa
 
     nan = np.isnan(x)
     ok = x[~nan]
     if ok.size and not ((np.trunc(ok) == ok).all() and (np.abs(ok) < 2.0**63).all()):
         return None
-    return pa.array(np.where(nan, 0, x).astype(np.int64), mask=nan if nan.any() else None)
+    return _arrow_array(np.where(nan, 0, x).astype(np.int64), nan)
 
 
 def _arrow_column(col: Any, i: int, j: int, integer: bool) -> Any:
@@ -243,16 +270,16 @@ def _arrow_column(col: Any, i: int, j: int, integer: bool) -> Any:
     if col is None:
         return pa.nulls(j - i, pa.string())
     if isinstance(col, np.ndarray) and col.dtype.kind in "iub":
-        return pa.array(col[i:j].astype(np.int64))
+        return _arrow_array(col[i:j].astype(np.int64))
     if isinstance(col, np.ndarray) and col.dtype.kind == "f":
         x = col[i:j]
         if integer:
             arr = _integer_text(x)
             if arr is not None:
                 return arr
-            return pa.array([_format_cell(v, True) for v in x.tolist()], pa.string())
+            return _arrow_strings([_format_cell(v, True) for v in x.tolist()])
         return _float_text(x)
-    return pa.array([_format_cell(col[k], integer) for k in range(i, j)], pa.string())
+    return _arrow_strings([_format_cell(col[k], integer) for k in range(i, j)])
 
 
 _FORMAT_PART_ROWS = 16_384

@@ -316,7 +316,8 @@ def cmd_bench_link(args: argparse.Namespace) -> int:
 DEMO_CURRENT_WHY = "heats the paper wire through its transformation in a few seconds"
 """Why ``simulate`` and ``demo`` heat at 1.4 A, not at the run schema's default."""
 COMMANDS = ("import", "fit", "predict", "simulate", "demo", "export", "mock", "run", "gui",
-            "analyze", "characterize", "plan", "firmware", "calibrate", "sensor", "bench")
+            "analyze", "characterize", "plan", "firmware", "calibrate", "sensor", "selfsense",
+            "bench")
 
 
 def command_of(argv: Sequence[str]) -> str | None:
@@ -444,6 +445,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         from smabench.calibrate import add_commands as add_calibrate_commands
 
         add_calibrate_commands(sub)
+    if want("selfsense"):
+        from smabench.selfsense import add_commands as add_selfsense_commands
+
+        add_selfsense_commands(sub)
     if want("bench"):
         _add_bench_commands(sub)
     return p

@@ -35,6 +35,15 @@ the sensor lag by ``lfilter``. The effects that feed ξ or T back into the heat 
 (``latent_heat``, ``phase_resistance``, ``convection_nonlinear``) make the model sequential:
 ``simulate_plant`` then loops over ``Plant.step`` (≈ 1.5e5 steps/s, logged). Both paths implement
 the same discrete equations (see ``Plant.step``) and agree to rounding.
+
+Resistance (opt-in, ``resistivity=``, issue 26): with a
+:class:`~smabench.physics.resistance.ResistivityModel` the wire's resistance is
+``resistance_ohm(ξ, T, ε, wire, model, rphase_fraction(T, cooling, model))``
+(:mod:`smabench.physics.resistance`) with ε = length / ``wire.length_mm`` − 1 (the strain the
+plant computes: elastic, transformation, thermal, after friction) and ``cooling`` the branch the
+plant tracks (its temperature direction < 0), used for the Joule heat and for ``voltage_v`` /
+``resistance_ohm``. R then depends on the state, so the simulation is sequential, as for the
+coupled effects. Without it (the default) R is ``R_mean + ΔR·(0.5 − ξ)`` (``phase_resistance``).
 """
 
 from __future__ import annotations
@@ -52,6 +61,7 @@ from smabench.physics.effects import (
     REFERENCE_STRESS_MPA,
     Effects,
 )
+from smabench.physics.resistance import ResistivityModel
 from smabench.physics.thermal import (
     linear_recurrence,
     steady_state_temperature,
@@ -139,8 +149,19 @@ def transformation_temperatures_c(
 class _Params:
     """Constants of one simulation (load, wire, effects), plain floats."""
 
-    def __init__(self, load_kg: float, wire: Wire, effects: Effects, ambient_c: float) -> None:
+    def __init__(
+        self,
+        load_kg: float,
+        wire: Wire,
+        effects: Effects,
+        ambient_c: float,
+        resistivity: ResistivityModel | None = None,
+    ) -> None:
         self.wire = wire
+        if resistivity is not None and effects.phase_resistance:
+            raise ValueError("give resistivity or the phase_resistance effect, not both")
+        self.rmodel = resistivity
+        self.geom_ohm_per_ohm_m = wire.length_m / wire.area_m2
         self.effects = effects
         self.sigma_pa = float(stress_mpa(load_kg, wire)) * 1e6
         tt = transformation_temperatures_c(load_kg, wire, effects)
@@ -199,6 +220,22 @@ class _Params:
     def resistance(self, xi):
         return self.r_mean + self.dr_ohm * (0.5 - xi)
 
+    def model_resistance(self, xi: float, temp: float, length_mm: float, cooling: bool) -> float:
+        """R, Ω, of the resistivity model at one state (floats): the scalar form of
+        ``resistance_ohm(xi, temp, length_mm/l0 - 1, wire, model, rphase_fraction(temp,
+        cooling, model))`` (same operations; a test checks they agree to rounding)."""
+        m = self.rmodel
+        dt = temp - m.ref_c
+        rho_a = m.rho_austenite_ohm_m * (1.0 + m.tcr_austenite_per_k * dt)
+        rest = rho_a
+        if cooling and m.rho_rphase_ohm_m is not None:
+            x = min(max((temp - m.rf_c) / (m.rs_c - m.rf_c), 0.0), 1.0)
+            r = 0.5 * (1.0 + math.cos(math.pi * x))
+            rho_r = m.rho_rphase_ohm_m * (1.0 + m.tcr_austenite_per_k * dt)
+            rest = (1.0 - r) * rho_a + r * rho_r
+        rho = xi * m.rho_martensite_ohm_m * (1.0 + m.tcr_martensite_per_k * dt) + (1.0 - xi) * rest
+        return rho * self.geom_ohm_per_ohm_m * (1.0 + (length_mm / self.l0_mm - 1.0)) ** 2
+
     def residual_strain(self, cycles):
         if not self.drift_rate:
             return 0.0 * cycles
@@ -224,6 +261,9 @@ class Plant:
     ξ_eq on the branch; ξ ← b·ξ + (1-b)·ξ_eq with b = exp(-dt/τ_heating|cooling);
     T += L/cp·Δξ (latent heat); cycles += |Δξ|/2; free length; friction play
     L ← clip(L, L_free - d, L_free + d); sensor lag; noise.
+
+    ``resistivity``: R from the resistivity model (module docstring), else ``R_mean + ΔR·(0.5 −
+    ξ)``; the R of a state is the one the next step heats with.
     """
 
     def __init__(
@@ -237,8 +277,9 @@ class Plant:
         martensite_fraction: float = 1.0,
         noise_mm: float = 0.002,
         seed: int = 0,
+        resistivity: ResistivityModel | None = None,
     ) -> None:
-        self.p = _Params(load_kg, wire, effects or Effects(), ambient_c)
+        self.p = _Params(load_kg, wire, effects or Effects(), ambient_c, resistivity)
         self.load_kg = load_kg
         self.noise_mm = noise_mm
         self.rng = np.random.default_rng(seed)
@@ -252,7 +293,11 @@ class Plant:
         self.length_mm = float(self.p.free_length_mm(self.temperature_c, self.xi, 0.0))
         self.position_true_mm = self.length_mm - self.p.l0_mm
         noise = self.rng.normal(0.0, noise_mm) if noise_mm > 0 else 0.0
-        r = float(self.p.resistance(self.xi))
+        if self.p.rmodel is None:
+            r = float(self.p.resistance(self.xi))
+        else:
+            r = self.p.model_resistance(self.xi, self.temperature_c, self.length_mm, False)
+        self._resistance_ohm = r
         self.state = PlantState(
             0.0, 0.0, self.temperature_c, self.xi, self.length_mm,
             self.position_true_mm + noise, 0.0, r, ta,
@@ -266,7 +311,7 @@ class Plant:
         if p.sine_k:
             ta += p.sine_k * math.sin(p.sine_w * t0)
         temp, xi = self.temperature_c, self.xi
-        r = p.r_mean + p.dr_ohm * (0.5 - xi)
+        r = p.r_mean + p.dr_ohm * (0.5 - xi) if p.rmodel is None else self._resistance_ohm
         g = p.conductance * (1.0 + p.h_k * (temp - ta)) if p.h_k else p.conductance
         g = max(g, 1e-9)
         t_inf = ta + current_a * current_a * r / g
@@ -310,10 +355,13 @@ class Plant:
         ta1 = p.ambient_c + p.drift_k_s * self.t_s
         if p.sine_k:
             ta1 += p.sine_k * math.sin(p.sine_w * self.t_s)
+        if p.rmodel is None:
+            self._resistance_ohm = p.r_mean + p.dr_ohm * (0.5 - xi_new)
+        else:
+            self._resistance_ohm = p.model_resistance(xi_new, temp_new, self.length_mm, d < 0)
         self.state = PlantState(
             self.t_s, current_a, temp_new, xi_new, self.length_mm,
-            self.position_true_mm + noise, current_a * r, p.r_mean + p.dr_ohm * (0.5 - xi_new),
-            ta1,
+            self.position_true_mm + noise, current_a * r, self._resistance_ohm, ta1,
         )  # fmt: skip
         return self.state
 
@@ -364,13 +412,16 @@ def simulate_plant(
     seed: int = 0,
     temperature_c: float | None = None,
     martensite_fraction: float = 1.0,
+    resistivity: ResistivityModel | None = None,
 ) -> PlantTrace:
     """Simulate the plant over a current profile sampled at ``t_s`` (s, increasing).
 
     ``current_a[n]`` (A, 0 … ~2) is held from t_s[n] to t_s[n+1]; ``load_kg`` the hanging mass
     (1–4 kg); ``ambient_c`` the nominal room temperature, °C; ``noise_mm`` the sensor noise std,
-    mm; the wire starts at ambient (or ``temperature_c``) and fully martensitic.
-    Vectorised unless a coupled effect is on (then a loop over ``Plant.step``).
+    mm; the wire starts at ambient (or ``temperature_c``) and fully martensitic;
+    ``resistivity``: R from that resistivity model (module docstring), opt-in.
+    Vectorised unless a coupled effect is on or ``resistivity`` is given (then a loop over
+    ``Plant.step``).
     """
     effects = effects or Effects()
     t_s = np.asarray(t_s, dtype=float)
@@ -378,10 +429,10 @@ def simulate_plant(
     n = len(t_s)
     if n == 0:
         raise ValueError("simulate_plant needs at least one sample time")
-    if effects.coupled:
+    if effects.coupled or resistivity is not None:
         return _simulate_sequential(
             t_s, cur, load_kg, wire, ambient_c, effects, noise_mm, seed, temperature_c,
-            martensite_fraction,
+            martensite_fraction, resistivity,
         )  # fmt: skip
     p = _Params(load_kg, wire, effects, ambient_c)
     amb = p.ambient(t_s)
@@ -425,13 +476,15 @@ def simulate_plant(
 
 
 def _simulate_sequential(
-    t_s, cur, load_kg, wire, ambient_c, effects, noise_mm, seed, temperature_c, xi0
-) -> PlantTrace:
+    t_s, cur, load_kg, wire, ambient_c, effects, noise_mm, seed, temperature_c, xi0,
+    resistivity=None,
+) -> PlantTrace:  # fmt: skip
     n = len(t_s)
-    log.info("coupled effects %s: sequential simulation of %d samples", effects.active(), n)
+    why = effects.active() + (["resistivity"] if resistivity is not None else [])
+    log.info("coupled effects %s: sequential simulation of %d samples", why, n)
     plant = Plant(
         load_kg, wire, effects, ambient_c=ambient_c, temperature_c=temperature_c,
-        martensite_fraction=xi0, noise_mm=noise_mm, seed=seed,
+        martensite_fraction=xi0, noise_mm=noise_mm, seed=seed, resistivity=resistivity,
     )  # fmt: skip
     out = np.empty((n, 9))
     s0 = plant.state

@@ -29,6 +29,7 @@ All functions are pure numpy; temperatures in °C, lengths/positions in mm.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import asdict, dataclass
@@ -467,16 +468,33 @@ def frank_copula(u, v, theta: float):
 
 def _frank_scalar(u: float, v: float, theta: float) -> float:
     """:func:`frank_copula` for two floats (the online stepper's speed)."""
-    u, v = min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)
+    return _frank_of(theta)(u, v)
+
+
+@functools.lru_cache(maxsize=256)
+def _frank_of(theta: float):
+    """:func:`_frank_scalar` for one θ: a function of (u, v) with θ's constants computed once
+    (a fit evaluates it about a million times on a noisy recording)."""
+    exp, expm1, log, log1p = math.exp, math.expm1, math.log, math.log1p
     if abs(theta) < 1e-6:
-        return u * v
+        return lambda u, v: min(max(u, 0.0), 1.0) * min(max(v, 0.0), 1.0)
     if theta < 0:
-        e = math.expm1
-        return -math.log1p(e(-theta * u) * e(-theta * v) / e(-theta)) / theta
-    lo, hi = min(u, v), max(u, v)
-    x = math.exp
-    inner = 1.0 + x(-theta * (hi - lo)) - x(-theta * hi) - x(-theta * (1.0 - lo))
-    return lo - (math.log(max(inner, 1e-300)) - math.log1p(-math.exp(-theta))) / theta
+        e_theta = expm1(-theta)
+
+        def lower(u: float, v: float) -> float:
+            u, v = min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)
+            return -log1p(expm1(-theta * u) * expm1(-theta * v) / e_theta) / theta
+
+        return lower
+    c = log1p(-exp(-theta))
+
+    def upper(u: float, v: float) -> float:
+        u, v = min(max(u, 0.0), 1.0), min(max(v, 0.0), 1.0)
+        lo, hi = min(u, v), max(u, v)
+        inner = 1.0 + exp(-theta * (hi - lo)) - exp(-theta * hi) - exp(-theta * (1.0 - lo))
+        return lo - (log(max(inner, 1e-300)) - c) / theta
+
+    return upper
 
 
 @dataclass
@@ -556,6 +574,36 @@ class SigmoidModel:
         ym = self.ym_mm + self.km_mm_per_k * d
         ya = self.ya_mm + self.ka_mm_per_k * d
         return ym + xi * (ya - ym)
+
+    def branch_run(
+        self, ts: list[float], heating: bool, start: Point, target: Point
+    ) -> list[float]:
+        """:meth:`branch` at each of a few temperatures (°C) of one run, the same numbers, with
+        what depends on the run's ends computed once (a noisy recording's many short runs)."""
+        br = self.heating_branch if heating else self.cooling_branch
+        xs = self.fraction_at(*start)
+        xe = self.fraction_at(*target)
+        gs, ge = br.xi_scalar(start[0]), br.xi_scalar(target[0])
+        th = self.memory_theta
+        cop = _frank_of(th)
+        if th != 0.0:
+            if heating:
+                gs, ge = gs - cop(gs, xs), ge - cop(ge, xs)
+            else:
+                gs, ge = cop(xs, gs), cop(xs, ge)
+        lo, hi = min(xs, xe), max(xs, xe)
+        flat = abs(ge - gs) < 1e-12
+        out = []
+        for t in ts:
+            g = br.xi_scalar(t)
+            if th != 0.0:
+                g = g - cop(g, xs) if heating else cop(xs, g)
+            xi = xs if flat else min(max(xs + (xe - xs) * (g - gs) / (ge - gs), lo), hi)
+            d = t - self.t_ref_c
+            ym = self.ym_mm + self.km_mm_per_k * d
+            ya = self.ya_mm + self.ka_mm_per_k * d
+            out.append(ym + xi * (ya - ym))
+        return out
 
     def branch_array(self, t: np.ndarray, heating: bool, start: Point, target: Point):
         """:meth:`branch` over an array of temperatures (°C)."""
@@ -689,12 +737,15 @@ def run_history(model, temperature_c, deadband_k: float, heating: bool = True,
     y = np.empty(t.size)
     fixed = {LOW: low, HIGH: high}
     vector = hasattr(model, "branch_array")
+    by_run = hasattr(model, "branch_run")
     for r in runs:
         start = fixed[r.start] if r.start < 0 else (float(t[r.start]), float(y[r.start]))
         target = fixed[r.target] if r.target < 0 else (float(t[r.target]), float(y[r.target]))
         seg = t[r.i0 : r.i1]
         if vector and seg.size >= SHORT_RUN:
             y[r.i0 : r.i1] = model.branch_array(seg, r.heating, start, target)
+        elif by_run:
+            y[r.i0 : r.i1] = model.branch_run(seg.tolist(), r.heating, start, target)
         else:
             y[r.i0 : r.i1] = [model.branch(float(x), r.heating, start, target) for x in seg]
     return y

@@ -27,11 +27,16 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 from smabench.drivers.displacement import SensorMap, load_map
+
+DROP_HOLD_S = 1.0
+"""A dropped sensor's held-back answers go out this long after the drop ends, s."""
 
 
 class SensorServer:
@@ -89,6 +94,7 @@ class SensorServer:
         self._exc_code = 0
         self._exc_count: int | None = 0
         self._corrupt_count: int | None = 0
+        self._drop_until = -math.inf  # time.monotonic() until which no request is answered
         self.requests = 0  # register requests that reached the datastore
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -188,8 +194,18 @@ class SensorServer:
         with self._lock:
             self._frozen_regs, self._frozen_count = None, count
 
+    def drop_for(self, seconds: float) -> None:
+        """Answer nothing for ``seconds`` (wall time) from now: a sensor that stopped answering
+        (every request times out at the client; the answers held back are sent after the drop
+        and :data:`DROP_HOLD_S`, when the client has long given up on them)."""
+        if not 0.0 <= seconds <= 3600.0:
+            raise ValueError(f"drop time must be in 0 … 3600 s, got {seconds}")
+        with self._lock:
+            self._drop_until = time.monotonic() + seconds
+
     def clear_faults(self) -> None:
         with self._lock:
+            self._drop_until = -math.inf
             self._delay_count = self._exc_count = self._corrupt_count = 0
             self._frozen_count, self._frozen_regs = 0, None
             self._raw_override.clear()
@@ -359,7 +375,10 @@ class SensorServer:
             delay_s = self._delay_s
             fail, self._exc_count = self._take(self._exc_count)
             code = self._exc_code
+            drop_s = self._drop_until - time.monotonic()
         latency_s = self.adapter_latency_s + (delay_s if delay else 0.0)
+        if drop_s > 0:  # a dropped sensor: the answer comes long after the client gave up
+            latency_s += drop_s + DROP_HOLD_S
         if latency_s > 0:
             await asyncio.sleep(latency_s)
         if fail:

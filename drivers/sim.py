@@ -37,6 +37,7 @@ from smabench.drivers.base import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
 from smabench.physics.effects import Effects
 from smabench.physics.plant import Plant, PlantState
+from smabench.physics.resistance import ResistivityModel
 from smabench.physics.wire import PAPER_WIRE, Wire
 
 log = logging.getLogger(__name__)
@@ -399,7 +400,8 @@ class SimDisplacementSensor:
 
 
 class SimBench:
-    """Clock, plant, current source and sensor wired together (units in names)."""
+    """Clock, plant, current source and sensor wired together (units in names);
+    ``resistivity``: the plant's wire resistance from that model (:class:`Plant`)."""
 
     def __init__(
         self,
@@ -415,11 +417,13 @@ class SimBench:
         host_timeout_s: float = p.HOST_TIMEOUT_DEFAULT_S,
         lease_s: float = p.LEASE_DEFAULT_S,
         clock: SimClock | None = None,
+        resistivity: ResistivityModel | None = None,
     ) -> None:
         if not 0.0 < load_kg <= 10.0:
             raise ValueError(f"load must be in (0, 10] kg, got {load_kg}")
         self.clock = clock or SimClock()
-        model = Plant(load_kg, wire, effects, ambient_c=ambient_c, noise_mm=noise_mm, seed=seed)
+        model = Plant(load_kg, wire, effects, ambient_c=ambient_c, noise_mm=noise_mm, seed=seed,
+                      resistivity=resistivity)  # fmt: skip
         self.plant = SimPlant(model, self.clock, substep_s)
         self.source = SimCurrentSource(
             self.plant,

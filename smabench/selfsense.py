@@ -1,578 +1,72 @@
-"""The wire as its own position sensor (issue 26): position from the wire's resistance.
-
-Learn the resistance → position map from sessions recorded with the laser, then estimate the
-position from the resistance alone (``smabench selfsense calibrate|estimate``). Units: A, V, Ω,
-mm, s.
-
-Resistance: ``R = voltage_V / current_A`` (the Kelvin wire voltage over the measured current)
-where ``current_A ≥ min_current_a`` (20 mA), NaN elsewhere. For learning, a row also needs a
-valid laser position: finite, and ``flags`` without
-:data:`~smabench.sessions.FLAG_SENSOR_INVALID` (1 << 8) or the sensor's own invalid bits
-(:data:`~smabench.sessions.FLAGS_POSITION_INVALID`, as the other session readers).
-
-Filter: R is noisy sample to sample (the bench's ADS1115 chain, 125 µV RMS per reading: ≈ 0.09
-mΩ at 1.4 A but ≈ 1.3 mΩ at a 0.1 A probe current, against ≈ 37 mΩ over the stroke), so it goes
-through a causal first-order filter ``R_f += (1 − exp(−Δt/τ))·(R − R_f)``, ``τ = filter_tau_s``
-(0.02 s, 4 samples at 200 Hz) while heating and ``filter_tau_cooling_s`` (0.2 s) while cooling.
-Measured (figures below): cooling τ 0.05, 0.1, 0.2, 0.4 s gave held-out
-major cycles 1.5, 0.9, 0.65, 0.8 % and partial loops 3.4, 3.4, 3.8, 3.9 % (3× the noise: major
-5.0, 3.0, 1.7, 1.0 %, partial 6.0, 4.5, 4.3, 4.0 %): a short τ lets the noise ratchet the
-estimate forward, a long one lags behind the reversals; 0.2 s balances them. Heating τ 0, 0.01,
-0.02, 0.05 s: major 0.76, 0.71, 0.65, 0.60 %, partial 3.6, 3.7, 3.8, 4.4 %. The same code runs in
-:meth:`SelfSenseEstimator.update`, so learning and estimation see the same lag.
-
-Branches (hysteresis): heating while ``current_A > probe_level_a`` (0.2 A), cooling at or below
-it (the firmware holds a probe current ≤ 0.1 A while the wire cools, so R stays measurable).
-Each branch has its own map ``x = f_b(R)``, monotone, learned from the part of every branch run
-where the transformation moves the wire: from the run's backward extreme of R (the martensite's
-resistance rising with temperature before As, or the austenite's falling before Ms) to its
-forward extreme (where the transformation ends); outside that part R moves with the temperature
-alone while the position stays put (and with an R-phase the cooling branch's R first rises by
-≈ 15 % at a constant position), so those rows would make the map many-valued.
-
-Figures below: the plant (:mod:`smabench.physics.plant`, resistivity
-:data:`~smabench.physics.resistance.FLEXINOL_RESISTIVITY`, Flexinol 0.38 mm × 55 mm under 2 kg,
-1.4 A heating, 0.1 A probe, 200 Hz) through the ADS1115 chain's noise; RMS error against the laser
-in % of stroke (2.67 mm), six major cycles learnt, three others estimated (tests/test_selfsense.py).
-
-Fit: a least-squares polynomial of degree 5 in the normalised R, its degree lowered until it is
-monotone on the learning range (``fit="poly"``, the default), against a monotone PCHIP through
-the isotonic equal-count binned medians (``fit="pchip"``): held-out major cycles 0.63 against
-0.71 % (3× the noise: 1.81 against 1.97 %; a cubic: 0.78 and 1.58 %; over three other seeds
-the means are 0.69, 0.73, 0.84 % for degree 5, PCHIP, cubic, and with the R-phase preset 0.57,
-0.67, 0.72 %). The degree-5 polynomial is kept; the differences are small.
-
-Reversal rule (``reversal=True``, the default), as the loop models' scaled branches: at a branch
-switch the estimate starts at the last one, ``x_r``, with the anchor ``R_r`` the R of the switch;
-as R moves toward the branch's end the estimate joins the branch's map,
-``x = f_b(R) + (x_r − f_b(R_r))·w``, ``w = (R_end − R)/(R_end − R_r)`` clipped to 0 … 1 (1 while
-the anchor lies beyond the map's end: nothing left to transform). While R moves away from the
-branch's end (the temperature alone, or the transformation still running on after the switch)
-the anchor follows R, and ``x_r`` slides onto the map where the map lies further back (the major
-branch bounds the state): without the slide, partial loops 5.2 % instead of 3.8 %. Within a
-branch the martensite fraction moves one way only, so the estimate does too: without that
-ratchet, major cycles 10.3 % (the austenite's R rising after Af reads as motion). Measured on
-partial loops (heating and cooling cut short inside the transformation): with the rule 3.8 %,
-the plain per-branch map ``x = f_b(R_f)`` 16.5 % (major cycles 0.6 against 18.7 %). The rule is
-kept. What is left on partial loops comes from the second or so after a reversal, while the
-plant's lagging transformation still moves the wire and R moves with the temperature as well.
-
-The estimator starts as after a complete cooling (a rested wire): its first estimate is the
-cooling map's end (the long, martensitic position) until R says otherwise. Without a resistance
-(current below ``min_current_a``) it holds its last estimate; NaN until it has had an R.
-
-Uncertainty: each branch's ``rms_mm`` is the RMS error of the estimator (maps and reversal rule)
-on that branch's rows, every cycle estimated with maps learnt without it (cycles in at most 10
-folds) when there are two cycles or more, in-sample otherwise.
-
-Limits: a load other than the calibration's moves the elastic strain, the transformation
-temperatures and R together (a map taken at 2 kg reads 1 kg and 3 kg at 2.6 and 2.8 %: re-take it
-for a new load); with an R-phase, a reversal to heating inside it drops R at once (the model's
-memoryless R-phase), which the estimate reads as motion (partial loops 6.8 %).
-"""
+"""`smabench selfsense calibrate|estimate`: learning the resistance → position map from recorded
+sessions and estimating position from the resistance of any session (issue 26). The maps, the
+calibration and the online estimator are :mod:`smabench.physics.selfsense` (the bench runs the
+estimator live); this module reads sessions and writes files."""
 
 from __future__ import annotations
 
 import argparse
-import bisect
-import json
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from smabench.argtypes import OUTPUT_HELP, output_file, positive
+from smabench.physics.selfsense import (
+    BRANCH_NAMES,
+    COOLING,
+    FILTER_TAU_COOLING_S,
+    FILTER_TAU_S,
+    FOLDS_MAX,
+    HEATING,
+    MIN_BRANCH_ROWS,
+    MIN_CURRENT_A,
+    MIN_ROWS,
+    POLY_DEGREE,
+    PROBE_LEVEL_A,
+    SCHEMA_VERSION,
+    BranchMap,
+    SelfSenseCalibration,
+    SelfSenseError,
+    SelfSenseEstimator,
+    branch_of,
+    fit_branch_map,
+    load_calibration,
+    resistance_from,
+)
 
-__all__ = [
+__all__ = [  # the maps and the estimator are smabench.physics.selfsense's, re-exported
+    "BRANCH_NAMES",
     "BranchMap",
+    "COOLING",
+    "FILTER_TAU_COOLING_S",
+    "FILTER_TAU_S",
+    "FOLDS_MAX",
+    "HEATING",
+    "MIN_BRANCH_ROWS",
+    "MIN_CURRENT_A",
+    "MIN_ROWS",
+    "POLY_DEGREE",
+    "PROBE_LEVEL_A",
     "SCHEMA_VERSION",
     "SelfSenseCalibration",
     "SelfSenseError",
     "SelfSenseEstimator",
     "SessionArrays",
+    "SessionEstimate",
+    "add_commands",
     "branch_of",
     "calibrate",
     "estimate_session",
     "fit_branch_map",
+    "load_calibration",
     "resistance_from",
     "session_arrays",
 ]
 
-SCHEMA_VERSION = 1
-"""Version of the calibration file (``SelfSenseCalibration.to_json``)."""
-MIN_CURRENT_A = 0.02
-"""Below this current no resistance is taken (the reading is mostly noise), A."""
-PROBE_LEVEL_A = 0.2
-"""Heating above this current, cooling at or below it (the probe current ≤ 0.1 A), A."""
-FILTER_TAU_S = 0.02
-"""First-order filter time constant while heating, s (4 samples at 200 Hz)."""
-FILTER_TAU_COOLING_S = 0.2
-"""... while cooling at the probe current (≈ 14× noisier per reading at 0.1 A than at 1.4 A; 40
-samples at 200 Hz; the balance of 0.05, 0.1, 0.2, 0.4 s on held-out major and partial cycles)."""
-MIN_ROWS = 200
-"""Fewest rows with a resistance and a valid position a calibration accepts."""
-MIN_BRANCH_ROWS = 30
-"""Fewest learning rows (the transformation part) per branch."""
-POLY_DEGREE = 5
-"""Degree of the polynomial map (lowered until monotone on the learning range)."""
-MAX_BINS = 24
-ROWS_PER_BIN = 40
-FOLDS_MAX = 10
-"""Held-out RMS: cycles are held out in at most this many folds."""
-HEATING, COOLING = 0, 1
-BRANCH_NAMES = ("heating", "cooling")
 
-
-class SelfSenseError(ValueError):
-    """Bad input to self-sensing (a session without voltage, too few rows with R …)."""
-
-
-# --------------------------------------------------------------------------- resistance
-def resistance_from(
-    current_a: np.ndarray, voltage_v: np.ndarray, min_current_a: float = MIN_CURRENT_A
-) -> np.ndarray:
-    """R = V/I, Ω, where ``current_a ≥ min_current_a`` and both are finite; NaN elsewhere."""
-    i = np.asarray(current_a, dtype=float)
-    v = np.asarray(voltage_v, dtype=float)
-    ok = np.isfinite(i) & np.isfinite(v) & (i >= min_current_a)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(ok, v / np.where(ok, i, 1.0), np.nan)
-
-
-def branch_of(current_a: np.ndarray, probe_level_a: float = PROBE_LEVEL_A) -> np.ndarray:
-    """0 (heating) where ``current_a > probe_level_a``, 1 (cooling) elsewhere."""
-    return np.where(np.asarray(current_a, dtype=float) > probe_level_a, HEATING, COOLING)
-
-
-# --------------------------------------------------------------------------- maps
-def _pchip_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Fritsch–Carlson slopes of the monotone piecewise-cubic Hermite interpolant."""
-    n = len(x)
-    if n < 2:
-        return np.zeros(n)
-    h = np.diff(x)
-    d = np.diff(y) / h
-    if n == 2:
-        return np.array([d[0], d[0]])
-    m = np.zeros(n)
-    w1 = 2.0 * h[1:] + h[:-1]
-    w2 = h[1:] + 2.0 * h[:-1]
-    same = d[:-1] * d[1:] > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inner = (w1 + w2) / (w1 / d[:-1] + w2 / d[1:])
-    m[1:-1] = np.where(same, inner, 0.0)
-
-    def end(h0: float, h1: float, d0: float, d1: float) -> float:
-        s = ((2.0 * h0 + h1) * d0 - h0 * d1) / (h0 + h1)
-        if np.sign(s) != np.sign(d0):
-            return 0.0
-        if np.sign(d0) != np.sign(d1) and abs(s) > abs(3.0 * d0):
-            return 3.0 * d0
-        return float(s)
-
-    m[0] = end(h[0], h[1], d[0], d[1])
-    m[-1] = end(h[-1], h[-2], d[-1], d[-2])
-    return m
-
-
-def _isotonic(y: np.ndarray, w: np.ndarray, increasing: bool) -> np.ndarray:
-    """Weighted least-squares monotone fit (pool adjacent violators)."""
-    sign = 1.0 if increasing else -1.0
-    vals: list[float] = []
-    wts: list[float] = []
-    lens: list[int] = []
-    for yi, wi in zip((sign * y).tolist(), w.tolist(), strict=True):
-        vals.append(yi)
-        wts.append(wi)
-        lens.append(1)
-        while len(vals) > 1 and vals[-2] > vals[-1]:
-            v1, w1, n1 = vals.pop(), wts.pop(), lens.pop()
-            wsum = wts[-1] + w1
-            vals[-1] = (vals[-1] * wts[-1] + v1 * w1) / wsum
-            wts[-1] = wsum
-            lens[-1] += n1
-    return sign * np.repeat(vals, lens)
-
-
-@dataclass(frozen=True)
-class BranchMap:
-    """One branch's monotone map x = f(R) and what the reversal rule needs.
-
-    ``kind``: ``pchip`` (knots ``r_knots_ohm``/``x_knots_mm``) or ``poly`` (``coeffs`` of the
-    polynomial in z = (R − r_center_ohm)/r_scale_ohm, highest power first). Outside
-    ``r_lo_ohm … r_hi_ohm`` the map holds its end values. ``forward``: +1 when R rises as the
-    branch's transformation proceeds, −1 when it falls; ``x_direction``: +1 when the position
-    grows on this branch. ``noise_ohm``: standard deviation of the filtered R's noise on this
-    branch, Ω (for information); ``rms_mm``: RMS error of the estimate on this branch (held out
-    by cycle when ``heldout``), mm; ``rows``: learning rows.
-    """
-
-    kind: str
-    r_lo_ohm: float
-    r_hi_ohm: float
-    forward: int
-    x_direction: int
-    r_knots_ohm: tuple[float, ...] = ()
-    x_knots_mm: tuple[float, ...] = ()
-    coeffs: tuple[float, ...] = ()
-    r_center_ohm: float = 0.0
-    r_scale_ohm: float = 1.0
-    noise_ohm: float = 0.0
-    rms_mm: float = math.nan
-    heldout: bool = False
-    rows: int = 0
-    _slopes: tuple[float, ...] = field(default=(), repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        if self.kind not in ("pchip", "poly"):
-            raise SelfSenseError(f"unknown map kind {self.kind!r} (pchip or poly)")
-        if self.kind == "pchip":
-            r = np.asarray(self.r_knots_ohm, dtype=float)
-            x = np.asarray(self.x_knots_mm, dtype=float)
-            if len(r) < 2 or len(r) != len(x) or np.any(np.diff(r) <= 0):
-                raise SelfSenseError("a pchip map needs ≥ 2 knots with increasing R")
-            object.__setattr__(self, "_slopes", tuple(_pchip_slopes(r, x).tolist()))
-        elif not self.coeffs:
-            raise SelfSenseError("a poly map needs coefficients")
-        if self.forward not in (-1, 1) or self.x_direction not in (-1, 1):
-            raise SelfSenseError("forward and x_direction must be +1 or -1")
-
-    @property
-    def r_start_ohm(self) -> float:
-        """R where the branch's transformation starts (the map's backward end)."""
-        return self.r_lo_ohm if self.forward > 0 else self.r_hi_ohm
-
-    @property
-    def r_end_ohm(self) -> float:
-        """R where the branch's transformation ends."""
-        return self.r_hi_ohm if self.forward > 0 else self.r_lo_ohm
-
-    def at(self, r: float) -> float:
-        """f(R) for one float (clamped to the map's R range)."""
-        r = min(max(r, self.r_lo_ohm), self.r_hi_ohm)
-        if self.kind == "poly":
-            z = (r - self.r_center_ohm) / self.r_scale_ohm
-            y = 0.0
-            for c in self.coeffs:
-                y = y * z + c
-            return y
-        rk, xk, mk = self.r_knots_ohm, self.x_knots_mm, self._slopes
-        k = min(max(bisect.bisect_right(rk, r) - 1, 0), len(rk) - 2)
-        h = rk[k + 1] - rk[k]
-        s = (r - rk[k]) / h
-        s2, s3 = s * s, s * s * s
-        return (
-            (2 * s3 - 3 * s2 + 1) * xk[k]
-            + (s3 - 2 * s2 + s) * h * mk[k]
-            + (-2 * s3 + 3 * s2) * xk[k + 1]
-            + (s3 - s2) * h * mk[k + 1]
-        )
-
-    def __call__(self, r: np.ndarray) -> np.ndarray:
-        """f(R) for an array (NaN stays NaN)."""
-        r = np.asarray(r, dtype=float)
-        out = np.full(r.shape, np.nan)
-        ok = np.isfinite(r)
-        out[ok] = [self.at(v) for v in r[ok].tolist()]
-        return out
-
-    def to_dict(self) -> dict[str, Any]:
-        d = asdict(self)
-        d.pop("_slopes")
-        for k in ("r_knots_ohm", "x_knots_mm", "coeffs"):
-            d[k] = list(d[k])
-        return d
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> BranchMap:
-        d = dict(d)
-        for k in ("r_knots_ohm", "x_knots_mm", "coeffs"):
-            d[k] = tuple(float(v) for v in d.get(k, ()))
-        d.pop("_slopes", None)
-        return cls(**d)
-
-
-def fit_branch_map(
-    r_ohm: np.ndarray, x_mm: np.ndarray, forward: int, x_direction: int, kind: str = "poly",
-    degree: int = POLY_DEGREE,
-) -> BranchMap:  # fmt: skip
-    """Monotone fit of position ``x_mm`` against resistance ``r_ohm`` (learning rows).
-
-    ``pchip``: R cut into equal-count bins (≈ 40 rows each, at most 24), the bins' median R
-    and median x, made monotone by weighted isotonic regression, joined by a PCHIP. ``poly``:
-    least squares of ``degree`` in the normalised R, the degree lowered until it is monotone on
-    the learning range. The monotone sense is ``forward·x_direction`` (x rises with R when +1).
-    """
-    r = np.asarray(r_ohm, dtype=float)
-    x = np.asarray(x_mm, dtype=float)
-    ok = np.isfinite(r) & np.isfinite(x)
-    r, x = r[ok], x[ok]
-    if len(r) < 4:
-        raise SelfSenseError(f"too few rows to fit a map ({len(r)})")
-    increasing = forward * x_direction > 0
-    lo, hi = float(np.min(r)), float(np.max(r))
-    if kind == "poly":
-        center, scale = 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-12)
-        z = (r - center) / scale
-        grid = np.linspace(-1.0, 1.0, 201)
-        for deg in range(min(degree, len(r) - 1), 0, -1):
-            c = np.polyfit(z, x, deg)
-            slope = np.polyval(np.polyder(c), grid)
-            if np.all(slope >= 0) if increasing else np.all(slope <= 0):
-                break
-        else:
-            raise SelfSenseError("the position does not follow the resistance one way")
-        return BranchMap(
-            "poly", lo, hi, forward, x_direction, coeffs=tuple(c.tolist()),
-            r_center_ohm=center, r_scale_ohm=scale, rows=len(r),
-        )  # fmt: skip
-    if kind != "pchip":
-        raise SelfSenseError(f"unknown fit {kind!r} (pchip or poly)")
-    order = np.argsort(r, kind="stable")
-    r, x = r[order], x[order]
-    nbins = int(min(MAX_BINS, max(2, len(r) // ROWS_PER_BIN)))
-    edges = np.linspace(0, len(r), nbins + 1).round().astype(int)
-    rk = np.array([np.median(r[a:b]) for a, b in zip(edges[:-1], edges[1:], strict=True)])
-    xk = np.array([np.median(x[a:b]) for a, b in zip(edges[:-1], edges[1:], strict=True)])
-    wk = np.diff(edges).astype(float)
-    keep = np.concatenate(([True], np.diff(rk) > 1e-12 * max(abs(hi), 1.0)))
-    if not keep.all():  # equal medians (a quantised R): merge into the first
-        groups = np.cumsum(keep) - 1
-        rk = np.bincount(groups, rk * wk) / np.bincount(groups, wk)
-        xk = np.bincount(groups, xk * wk) / np.bincount(groups, wk)
-        wk = np.bincount(groups, wk)
-    if len(rk) < 2:
-        raise SelfSenseError("the learning rows span no resistance range")
-    xk = _isotonic(xk, wk, increasing)
-    return BranchMap(
-        "pchip", float(rk[0]), float(rk[-1]), forward, x_direction,
-        r_knots_ohm=tuple(rk.tolist()), x_knots_mm=tuple(xk.tolist()), rows=len(r),
-    )  # fmt: skip
-
-
-# --------------------------------------------------------------------------- calibration
-@dataclass(frozen=True)
-class SelfSenseCalibration:
-    """A learned resistance → position map (``to_json``/``from_json``).
-
-    ``heating``/``cooling``: the branch maps (:class:`BranchMap`, each with its RMS error, mm);
-    ``min_current_a``, ``probe_level_a``: R threshold and branch split, A; ``filter_tau_s``,
-    ``filter_tau_cooling_s``: the R filter's time constants, s; ``reversal``: the reversal rule
-    on; ``r_range_ohm``: filtered R seen while learning, Ω; ``x_range_mm``: the laser's position
-    range (1st … 99th percentile), mm, whose width is the stroke; ``sessions``: where it came
-    from (path, load_kg, wire, rows); ``load_kg``/``wire``: the sessions' (None when they
-    differ or are not recorded).
-    """
-
-    heating: BranchMap
-    cooling: BranchMap
-    min_current_a: float = MIN_CURRENT_A
-    probe_level_a: float = PROBE_LEVEL_A
-    filter_tau_s: float = FILTER_TAU_S
-    filter_tau_cooling_s: float = FILTER_TAU_COOLING_S
-    reversal: bool = True
-    r_range_ohm: tuple[float, float] = (math.nan, math.nan)
-    x_range_mm: tuple[float, float] = (math.nan, math.nan)
-    sessions: tuple[dict[str, Any], ...] = ()
-    load_kg: float | None = None
-    wire: dict[str, Any] | None = None
-    schema_version: int = SCHEMA_VERSION
-
-    @property
-    def stroke_mm(self) -> float:
-        return self.x_range_mm[1] - self.x_range_mm[0]
-
-    def branch(self, b: int) -> BranchMap:
-        return self.heating if b == HEATING else self.cooling
-
-    def percent_of_stroke(self, mm: float) -> float:
-        return 100.0 * mm / self.stroke_mm if self.stroke_mm > 0 else math.nan
-
-    def to_dict(self) -> dict[str, Any]:
-        d = {
-            "schema_version": self.schema_version,
-            "kind": "smabench-selfsense",
-            "heating": self.heating.to_dict(),
-            "cooling": self.cooling.to_dict(),
-        }
-        for k in ("min_current_a", "probe_level_a", "filter_tau_s", "filter_tau_cooling_s",
-                  "reversal", "load_kg", "wire"):  # fmt: skip
-            d[k] = getattr(self, k)
-        d["r_range_ohm"] = list(self.r_range_ohm)
-        d["x_range_mm"] = list(self.x_range_mm)
-        d["stroke_mm"] = self.stroke_mm
-        d["rms_mm"] = {n: self.branch(b).rms_mm for b, n in enumerate(BRANCH_NAMES)}
-        d["sessions"] = [dict(s) for s in self.sessions]
-        return d
-
-    def to_json(self) -> str:
-        """The calibration as JSON text (one trailing newline; NaN written as null)."""
-        return json.dumps(_nan_to_none(self.to_dict()), indent=2) + "\n"
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> SelfSenseCalibration:
-        version = d.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise SelfSenseError(
-                f"self-sense calibration schema {version!r} not supported (expected "
-                f"{SCHEMA_VERSION})"
-            )
-        try:
-            return cls(
-                heating=BranchMap.from_dict(_none_to_nan(d["heating"])),
-                cooling=BranchMap.from_dict(_none_to_nan(d["cooling"])),
-                min_current_a=float(d["min_current_a"]),
-                probe_level_a=float(d["probe_level_a"]),
-                filter_tau_s=float(d["filter_tau_s"]),
-                filter_tau_cooling_s=float(d["filter_tau_cooling_s"]),
-                reversal=bool(d["reversal"]),
-                r_range_ohm=_pair(d["r_range_ohm"]),
-                x_range_mm=_pair(d["x_range_mm"]),
-                sessions=tuple(d.get("sessions", ())),
-                load_kg=None if d.get("load_kg") is None else float(d["load_kg"]),
-                wire=d.get("wire"),
-            )
-        except (KeyError, TypeError) as exc:
-            raise SelfSenseError(f"not a self-sense calibration ({exc!r})") from None
-
-    @classmethod
-    def from_json(cls, text: str) -> SelfSenseCalibration:
-        try:
-            d = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise SelfSenseError(f"not JSON ({exc.msg}, line {exc.lineno})") from None
-        if not isinstance(d, dict):
-            raise SelfSenseError("not a self-sense calibration (a JSON object expected)")
-        return cls.from_dict(d)
-
-
-def _pair(v: Any) -> tuple[float, float]:
-    a, b = v
-    return (math.nan if a is None else float(a), math.nan if b is None else float(b))
-
-
-def _nan_to_none(obj: Any) -> Any:
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, dict):
-        return {k: _nan_to_none(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_nan_to_none(v) for v in obj]
-    return obj
-
-
-def _none_to_nan(d: dict[str, Any]) -> dict[str, Any]:
-    return {k: (math.nan if v is None and k == "rms_mm" else v) for k, v in d.items()}
-
-
-# --------------------------------------------------------------------------- estimator
-class SelfSenseEstimator:
-    """Position from the wire's resistance, one sample at a time (causal, online).
-
-    ``update(t_s, current_a, voltage_v)`` → the position estimate, mm (NaN until a sample has
-    had a resistance; the last estimate while the current is below ``min_current_a``).
-    ``estimate(t_s, current_a, voltage_v)`` runs ``update`` over arrays in order (same floats).
-    """
-
-    def __init__(self, calibration: SelfSenseCalibration) -> None:
-        self.calibration = calibration
-        self._maps = (calibration.heating, calibration.cooling)
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the history (the next sample starts as a rested wire)."""
-        self._rf = math.nan  # filtered R
-        self._t = math.nan  # time of the last R
-        self._x = math.nan  # last estimate
-        self._branch = COOLING
-        self._xr = [math.nan, math.nan]  # per branch: position at its switch
-        self._ur = [math.nan, math.nan]  # per branch: anchor, forward·R
-        self._fr = [math.nan, math.nan]  # per branch: f(R_r)
-
-    @property
-    def resistance_ohm(self) -> float:
-        """The filtered resistance of the last sample with one, Ω (NaN before)."""
-        return self._rf
-
-    def _anchor(self, b: int, rf: float) -> None:
-        m = self._maps[b]
-        self._ur[b] = m.forward * rf
-        self._fr[b] = m.at(rf)
-
-    def _follow(self, b: int, rf: float, x_prev: float) -> float:
-        """Branch b's reversal rule at R_f = rf (its anchor follows backward moves)."""
-        m = self._maps[b]
-        u = m.forward * rf
-        fx = m.at(rf)
-        if u < self._ur[b]:  # moving away from the branch's end: the anchor follows
-            self._ur[b], self._fr[b] = u, fx
-            # ... and the reversal point slides onto the branch's map where the map lies
-            # further back (the major branch bounds the state)
-            xr = self._xr[b]
-            x_prev = self._xr[b] = min(xr, fx) if m.x_direction > 0 else max(xr, fx)
-        u_r = self._ur[b]
-        u_end = m.forward * m.r_end_ohm
-        w = 1.0 if u_r >= u_end else min(max((u_end - u) / (u_end - u_r), 0.0), 1.0)
-        x = fx + (self._xr[b] - self._fr[b]) * w
-        # the martensite fraction moves one way on a branch, so does the estimate
-        return max(x, x_prev) if m.x_direction > 0 else min(x, x_prev)
-
-    def update(self, t_s: float, current_a: float, voltage_v: float) -> float:
-        """One sample (time, s; measured current, A; Kelvin wire voltage, V) → position, mm."""
-        cal = self.calibration
-        i, v, t = float(current_a), float(voltage_v), float(t_s)
-        if not (i >= cal.min_current_a) or not math.isfinite(v) or not math.isfinite(t):
-            return self._x
-        r = v / i
-        b = HEATING if i > cal.probe_level_a else COOLING
-        tau = cal.filter_tau_s if b == HEATING else cal.filter_tau_cooling_s
-        if math.isnan(self._rf):  # the first R: a rested wire, at the cooling map's end
-            rf = r
-            m = self._maps[COOLING]
-            self._branch = COOLING
-            self._x = self._xr[COOLING] = m.at(m.r_end_ohm)
-            self._anchor(COOLING, rf)
-        else:
-            dt = t - self._t
-            a = 1.0 if tau <= 0 else -math.expm1(-max(dt, 0.0) / tau)
-            rf = self._rf + a * (r - self._rf)
-        self._rf, self._t = rf, t
-        m = self._maps[b]
-        if not cal.reversal:
-            self._branch = b
-            self._x = m.at(rf)
-            return self._x
-        x_prev = self._x
-        if b != self._branch:
-            self._branch = b
-            self._xr[b] = x_prev
-            self._anchor(b, rf)
-        self._x = self._follow(b, rf, x_prev)
-        return self._x
-
-    def estimate(self, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray) -> np.ndarray:
-        """``update`` over arrays, in order, from the estimator's present state."""
-        t = np.asarray(t_s, dtype=float).tolist()
-        i = np.asarray(current_a, dtype=float).tolist()
-        v = np.asarray(voltage_v, dtype=float).tolist()
-        if not len(t) == len(i) == len(v):
-            raise SelfSenseError("t_s, current_a and voltage_v must be equally long")
-        up = self.update
-        return np.array([up(a, b, c) for a, b, c in zip(t, i, v, strict=True)], dtype=float)
-
-    def _set_maps(self, heating: BranchMap, cooling: BranchMap) -> None:
-        """Swap the maps mid-stream (the held-out RMS: each cycle with maps that never saw it);
-        the anchors' f(R_r) are re-evaluated with the new maps."""
-        self._maps = (heating, cooling)
-        for b, m in enumerate(self._maps):
-            if math.isfinite(self._ur[b]):
-                self._fr[b] = m.at(m.forward * self._ur[b])
-
-
-# --------------------------------------------------------------------------- learning
 @dataclass(frozen=True)
 class SessionArrays:
     """What self-sensing reads of one session: arrays of equal length and the session's facts.
@@ -884,16 +378,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 def cmd_estimate(args: argparse.Namespace) -> int:
     from smabench.sessions import atomic_write, rows_from_arrays
 
-    try:
-        text = Path(args.calibration).read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SelfSenseError(f"cannot read {args.calibration}: {exc.strerror}") from None
-    except UnicodeDecodeError:
-        raise SelfSenseError(f"{args.calibration}: not a JSON text file") from None
-    try:
-        cal = SelfSenseCalibration.from_json(text)
-    except SelfSenseError as exc:
-        raise SelfSenseError(f"{args.calibration}: {exc}") from None
+    cal = load_calibration(args.calibration)
     s = session_arrays(args.session)
     res = estimate_session(cal, s)
     if not np.isfinite(res.position_est_mm).any():

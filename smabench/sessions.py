@@ -23,7 +23,11 @@ displacement sensor's own bits, defined by its driver) and the one atomic write
 
 Schema history: 1 = the contract columns up to ``flags``; 2 = adds ``temperature_C`` (measured
 wire temperature from an optional thermocouple, empty when absent), chunk files and
-``cycles.csv``. Version-1 sessions read unchanged (a missing column is simply absent).
+``cycles.csv``. Version-1 sessions read unchanged (a missing column is simply absent). Schema 2
+was later extended without a new version, as nothing a reader relies on changed: the optional
+self-sensing columns :data:`SELFSENSE_COLUMNS` (``resistance_ohm``, ``position_est_mm``; only in
+sessions run with a self-sense calibration, after the contract columns) and the flag bit
+:data:`FLAG_FEEDBACK_RESISTANCE` (issue 26).
 """
 
 from __future__ import annotations
@@ -61,19 +65,23 @@ SCHEMA_VERSION = 2
 
 # ``flags`` column: one integer per sample. Bits 0-7 are the displacement sensor's own flags
 # (timeout, exception, link lost, framing, status, retried: smabench.drivers.displacement
-# FLAG_*), copied as the sensor reported them; bits 8-12 are the bench runtime's.
+# FLAG_*), copied as the sensor reported them; bits 8-13 are the bench runtime's.
 SENSOR_FLAGS_MASK = 0x00FF
 FLAG_SENSOR_INVALID = 1 << 8  # the sample's position is invalid (no value fed to the controller)
 FLAG_TELEMETRY_STALE = 1 << 9  # the current driver's telemetry was older than the link timeout
 FLAG_DEADLINE_MISSED = 1 << 10  # the loop tick came late
 FLAG_INTERLOCK = 1 << 11  # an interlock tripped on this sample (the session ends)
 FLAG_AFTER_END = 1 << 12  # recorded after the session ended, until the driver showed 0 A
+FLAG_FEEDBACK_RESISTANCE = 1 << 13  # the controller's position was position_est_mm (from the
+# wire's resistance), not the laser's: --feedback resistance, or the fallback while the laser's
+# reading was invalid (position_mm still holds the laser's, empty when invalid)
 RUNTIME_FLAG_NAMES: dict[int, str] = {
     FLAG_SENSOR_INVALID: "sensor_invalid",
     FLAG_TELEMETRY_STALE: "telemetry_stale",
     FLAG_DEADLINE_MISSED: "deadline_missed",
     FLAG_INTERLOCK: "interlock",
     FLAG_AFTER_END: "after_end",
+    FLAG_FEEDBACK_RESISTANCE: "feedback_resistance",
 }
 FLAG_NAMES: dict[int, str] = {**SENSOR_FLAG_NAMES, **RUNTIME_FLAG_NAMES}
 """Every bit of the ``flags`` column and its name."""
@@ -104,6 +112,21 @@ COLUMNS: tuple[str, ...] = (
 )
 """Contract columns, in this order (``temperature_C``: measured wire temperature from an
 optional thermocouple, °C, empty when absent; since schema 2)."""
+SELFSENSE_COLUMNS: tuple[str, ...] = ("resistance_ohm", "position_est_mm")
+"""Optional columns after :data:`COLUMNS`, only in sessions run with a self-sense calibration
+(``smabench run --selfsense CAL.json``, issue 26): ``resistance_ohm``, the wire's resistance
+``voltage_V / current_A`` of the row, Ω (empty below the calibration's ``min_current_a``);
+``position_est_mm``, the position estimated from it online (:class:`smabench.selfsense.
+SelfSenseEstimator`, the same floats ``smabench selfsense estimate`` gives on the session), mm.
+Sessions without them read as before: a reader that wants them checks for the column."""
+
+
+def session_columns(selfsense: bool = False) -> tuple[str, ...]:
+    """The columns a bench session records: :data:`COLUMNS`, and :data:`SELFSENSE_COLUMNS` after
+    them when it estimates the position from the wire's resistance."""
+    return COLUMNS + SELFSENSE_COLUMNS if selfsense else COLUMNS
+
+
 EXTRA_COLUMNS: tuple[str, ...] = ("temperature_C", "stress_MPa")
 """Columns that thermometer loops (imported data) may carry (those not in :data:`COLUMNS` go
 after the contract columns)."""
@@ -1063,14 +1086,15 @@ def write_session(
 ) -> Path:
     """Write a complete session into ``folder`` (must not exist) all-or-nothing.
 
-    ``columns`` defaults to the contract columns followed by any extra columns present in
-    ``data``; ``progress(rows_done, rows)``: see :meth:`SessionWriter.append_arrays`.
+    ``columns`` defaults to the contract columns followed by any extra or self-sensing columns
+    present in ``data``; ``progress(rows_done, rows)``: see :meth:`SessionWriter.append_arrays`.
     """
     folder = Path(folder)
     if folder.exists():
         raise SessionError(f"{folder} already exists; choose another --out")
     if columns is None:
-        columns = list(COLUMNS) + [c for c in EXTRA_COLUMNS if c in data and c not in COLUMNS]
+        columns = list(COLUMNS) + [c for c in (*EXTRA_COLUMNS, *SELFSENSE_COLUMNS)
+                                   if c in data and c not in COLUMNS]  # fmt: skip
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(dir=folder.parent, prefix=f".{folder.name}."))
     try:

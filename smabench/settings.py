@@ -48,7 +48,7 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from smabench.drivers.protocol import HARD_LIMIT_A
+from smabench.drivers.protocol import HARD_LIMIT_A, PROBE_MAX_A
 from smabench.physics.wire import PRESETS, Wire, load_kg_for_stress, stress_mpa
 
 log = logging.getLogger(__name__)
@@ -69,6 +69,9 @@ REFERENCE_NAMES = ("step", "staircase", "sine", "triangle")
 """Protocols that are position references for a controller (``step`` is both)."""
 OPEN_LOOP_NAMES = ("cycles", "incomplete", "inner", "step", "ramp")
 CONTROLLER_MODES = ("open_loop", "pid", "ff", "ffpid")
+FEEDBACK_SOURCES = ("laser", "resistance")
+"""Where the command source's measured position comes from: the displacement sensor, or the
+position estimated from the wire's resistance (issue 26)."""
 FF_MODELS = ("sigmoid", "1", "2")
 
 HEATING = ("cycles", "incomplete", "inner")
@@ -528,6 +531,24 @@ _TABLE: list[Setting] = [
     Setting("time_scale", "time scale", "Device time per wall time: above 1 only against a mock "
             "bench run faster than real time (smabench run: set by --mock-speed).", "loop",
             default=1.0, min=0.1, max=100.0, decimals=1, step=1.0, cli=None),
+    # resistance sensing (issue 26): optional, the session is as before without it
+    Setting("probe_current_a", "probe current", "Current the driver holds while its output is "
+            "enabled and the setpoint is lower (SET_PROBE), so the wire's resistance is measured "
+            "while it cools; its heat is part of the session (0: off).", "loop", unit="A",
+            default=0.0, min=0.0, max=PROBE_MAX_A, decimals=3, step=0.01),
+    Setting("selfsense", "self-sense calibration", "Calibration JSON from `smabench selfsense "
+            "calibrate`: every tick estimates the position from the wire's resistance (columns "
+            "resistance_ohm, position_est_mm; the calibration goes into session.json).", "loop",
+            kind="text", optional=True, none_text="none: no estimate", metavar="CAL.json"),
+    Setting("feedback", "position feedback", "The controller's measured position: the laser's, "
+            "or the one estimated from the wire's resistance (needs a self-sense calibration "
+            "and a probe current).", "loop", kind="choice", default="laser",
+            choices=FEEDBACK_SOURCES),
+    Setting("fallback", "feedback fallback", "While the laser's reading is invalid or the "
+            "sensor does not answer, control on the position estimated from the wire's "
+            "resistance (flagged rows; needs a self-sense calibration and a probe current).",
+            "loop", kind="choice", choices=("resistance",), optional=True,
+            none_text="none: the session ends when the laser is lost"),
     # ---------------------------------------------------------------- session
     Setting("out_dir", "sessions folder", "Parent folder of the session.", "session",
             kind="text", default="sessions", cli="--out", metavar="DIR"),

@@ -179,8 +179,8 @@ def test_flag_bits_are_defined_once_with_the_format():
     from smabench.drivers.base import FLAG_NAMES as SENSOR_BITS
 
     bits = list(sessions.FLAG_NAMES)
-    assert len(bits) == len(set(bits)) == len(SENSOR_BITS) + 5
-    assert sorted(sessions.RUNTIME_FLAG_NAMES) == [1 << k for k in range(8, 13)]  # bits 8-12
+    assert len(bits) == len(set(bits)) == len(SENSOR_BITS) + 6
+    assert sorted(sessions.RUNTIME_FLAG_NAMES) == [1 << k for k in range(8, 14)]  # bits 8-13
     assert all(b & sessions.SENSOR_FLAGS_MASK for b in SENSOR_BITS)
     assert not any(b & sessions.SENSOR_FLAGS_MASK for b in sessions.RUNTIME_FLAG_NAMES)
     assert sessions.describe_flags(sessions.FLAG_INTERLOCK | 0x01) == "timeout|interlock"

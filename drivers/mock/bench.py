@@ -38,6 +38,7 @@ from smabench.drivers.mock.plant_link import PlantLink
 from smabench.drivers.mock.serial_device import SerialDevice
 from smabench.drivers.modbus_sim import SensorServer
 from smabench.physics.effects import Effects
+from smabench.physics.resistance import ResistivityModel
 from smabench.physics.wire import PAPER_WIRE, Wire
 
 log = logging.getLogger(__name__)
@@ -257,6 +258,7 @@ class MockBench:
         thermocouple: bool = False,
         realtime: bool = False,
         fault: str | None = None,
+        resistivity: ResistivityModel | None = None,
     ) -> None:
         """``realtime``: at real-time speed (1), the stand-in driver favoured where allowed (the
         Python firmware's thread SCHED_FIFO :data:`DEVICE_RT_PRIORITY`, the simavr harness at
@@ -271,7 +273,9 @@ class MockBench:
         current first exceeds :data:`FAULT_ARM_MA` (the emulated firmware: through the
         harness's FAULT command, timed by the harness): a shorted MOSFET or a wire
         shorted to ground stays; a hung MCU ends with its own watchdog's reset. What the hardware
-        cut did is printed on stdout and kept in :attr:`fault_report`."""
+        cut did is printed on stdout and kept in :attr:`fault_report`; ``resistivity``: the
+        wire's resistance from that model (:mod:`smabench.physics.resistance`: R(ξ, T, ε), so
+        the wire voltage the driver measures is I·R(ξ, T, ε)), None: the plant's default."""
         if fault is not None and fault not in FAULTS:
             raise ValueError(f"fault must be one of {', '.join(FAULTS)}, got {fault!r}")
         self.fault = fault
@@ -292,7 +296,8 @@ class MockBench:
         self.bootloader, self.blank = bootloader, blank
         self.sensor_map, self.adapter_latency_s = sensor_map, adapter_latency_s
         self.thermocouple = thermocouple
-        self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace)
+        self.link = PlantLink(load_kg, wire, effects, noise_mm=noise_mm, seed=seed, trace=trace,
+                              resistivity=resistivity)  # fmt: skip
         self.speed = speed
         self.firmware = firmware
         self.realtime = realtime and speed <= REALTIME_MAX_SPEED

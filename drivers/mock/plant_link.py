@@ -15,6 +15,7 @@ from pathlib import Path
 
 from smabench.physics.effects import Effects
 from smabench.physics.plant import Plant, PlantState
+from smabench.physics.resistance import ResistivityModel
 from smabench.physics.wire import PAPER_WIRE, Wire
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,11 @@ class PlantTrace:
 
 
 class PlantLink:
-    """A :class:`~smabench.physics.plant.Plant` shared between mock devices (thread-safe)."""
+    """A :class:`~smabench.physics.plant.Plant` shared between mock devices (thread-safe).
+
+    ``resistivity``: the wire's resistance from that model, R(ξ, T, ε)
+    (:mod:`smabench.physics.resistance`), which the driver's wire voltage then reads; None: the
+    plant's default two-phase resistance."""
 
     def __init__(
         self,
@@ -63,12 +68,14 @@ class PlantLink:
         seed: int = 0,
         max_step_s: float = 1e-3,
         trace: str | Path | None = None,
+        resistivity: ResistivityModel | None = None,
     ) -> None:
         if not 0.0 < load_kg <= 10.0:
             raise ValueError(f"load must be in (0, 10] kg, got {load_kg}")
         self.plant = Plant(
-            load_kg, wire, effects, ambient_c=ambient_c, noise_mm=noise_mm, seed=seed
-        )
+            load_kg, wire, effects, ambient_c=ambient_c, noise_mm=noise_mm, seed=seed,
+            resistivity=resistivity,
+        )  # fmt: skip
         self.max_step_s = max_step_s
         self._lock = threading.Lock()
         self._state: PlantState = self.plant.state

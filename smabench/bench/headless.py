@@ -41,6 +41,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
     from smabench.bench.priority import raise_priority, realtime_process
     from smabench.drivers.mock.bench import MockBench
     from smabench.physics.effects import Effects
+    from smabench.physics.resistance import RESISTIVITY_PRESETS
 
     raise_priority()  # it stands in for a microcontroller and a sensor: host load slows neither
 
@@ -63,6 +64,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         thermocouple=args.thermocouple,
         realtime=True,  # up to REALTIME_MAX_SPEED; the simavr harness too, started before
         fault=getattr(args, "fault", None),
+        resistivity=RESISTIVITY_PRESETS[args.resistivity] if args.resistivity else None,
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -89,6 +91,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         print(
             f"mock bench: {args.load_kg} kg, speed {args.speed}×, firmware {args.firmware}"
             + (f", effects {', '.join(args.effect)}" if args.effect else "")
+            + (f", resistivity {args.resistivity}" if args.resistivity else "")
             + (", bootloader" if args.bootloader else "")
             + (" on a blank flash" if args.blank else "")
         )
@@ -126,7 +129,8 @@ def _control_loop(bench, done: threading.Event) -> None:
     ``sensor-delay S N`` (N responses late by S s), ``sensor-exception CODE N``,
     ``sensor-corrupt N``, ``sensor-status-error N`` / ``sensor-sentinel N`` (the map's error
     status / "no measurement" code for N requests), ``sensor-freeze N`` (the same reading for N
-    requests), ``open-wire``, ``close-wire``, ``quit``.
+    requests), ``sensor-drop S`` (no answer at all for S s of wall time: every request then
+    times out, as a sensor that stopped answering), ``open-wire``, ``close-wire``, ``quit``.
     EOF ends the mock."""
     for line in sys.stdin:
         words = line.split()
@@ -146,6 +150,8 @@ def _control_loop(bench, done: threading.Event) -> None:
                 bench.server.serve_sentinel(int(rest[0]))
             elif cmd == "sensor-freeze":  # the same reading, valid, for N requests
                 bench.server.freeze(int(rest[0]))
+            elif cmd == "sensor-drop":  # no answer for S seconds
+                bench.server.drop_for(float(rest[0]))
             elif cmd in ("open-wire", "close-wire") and bench.device is not None:
                 bench.device.set_open_wire(cmd == "open-wire")
             elif cmd == "quit":
@@ -309,6 +315,14 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
         action="store_true",
         help="a MAX31855 thermocouple on the wire reports its temperature (temperature_C)",
     )
+    s.add_argument(
+        f"--{prefix}resistivity",
+        choices=["flexinol", "flexinol-rphase"],
+        default=None,
+        help="the wire's resistance from this resistivity model, R(ξ, T, ε) (issue 26; "
+        "flexinol-rphase: with an R-phase on cooling), so the wire voltage the driver measures "
+        "is I·R; default: the plant's two-phase resistance",
+    )
 
 
 # --------------------------------------------------------------------------- smabench run
@@ -340,12 +354,14 @@ def _progress_printer(protocol, total: int, every_s: float = 1.0):
 
     def on_sample(row: dict) -> None:
         now = time.monotonic()
+        est = row.get("position_est_mm")
+        est_text = "" if est is None else f"  x̂ {est:.4f} mm"  # with a self-sense calibration
         if now - last[0] >= every_s and row["setpoint_mm"] is not None:
             last[0] = now
             print(
                 f"  t {row['t_s']:7.1f} s  cycle {row['cycle'] + 1}/{total}  {row['mode']:9s} "
                 f"I {row['current_A']:.3f} A  T≈{row['temperature_est_C']:6.1f} °C  "
-                f"x {row['position_mm']:.4f} mm  set {row['setpoint_mm']:.4f} mm",
+                f"x {row['position_mm']:.4f} mm{est_text}  set {row['setpoint_mm']:.4f} mm",
                 flush=True,
             )
         elif now - last[0] >= every_s:
@@ -353,7 +369,7 @@ def _progress_printer(protocol, total: int, every_s: float = 1.0):
             print(
                 f"  t {row['t_s']:7.1f} s  cycle {row['cycle'] + 1}/{total}  "
                 f"{protocol.phase:5s}  I {row['current_A']:.3f} A  "
-                f"T≈{row['temperature_est_C']:6.1f} °C  x {row['position_mm']:.4f} mm",
+                f"T≈{row['temperature_est_C']:6.1f} °C  x {row['position_mm']:.4f} mm{est_text}",
                 flush=True,
             )
 
@@ -421,6 +437,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     from smabench.bench.priority import raise_priority
 
     raise_priority()  # the control loop (and the mock it starts) before other work
+    if args.mock and args.mock_resistivity:
+        from smabench.physics.effects import Effects
+
+        if Effects.from_strings(args.mock_effect).phase_resistance:
+            raise ValueError("--mock-resistivity replaces the phase_resistance effect: give one "
+                             "of them")  # fmt: skip
+    cal = settings.selfsense_calibration()
+    if cal is not None and cal.load_kg is not None and cal.load_kg != settings.load_kg:
+        print(f"note: the self-sense calibration was taken at {cal.load_kg:g} kg, this session "
+              f"runs at {settings.load_kg:g} kg (the estimate's error grows: re-take it)",
+              flush=True)  # fmt: skip
     stress = settings.stress()
     if stress.needs_confirmation:  # allowed with --allow-high-stress, else refused above
         print(f"note: {settings.load_kg:g} kg puts {stress.stress_mpa:.0f} MPa on the wire, "
@@ -444,6 +471,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mock_args += ["--trace", str(Path(args.mock_trace).resolve())]
             if args.mock_thermocouple:
                 mock_args += ["--thermocouple"]
+            if args.mock_resistivity:
+                mock_args += ["--resistivity", args.mock_resistivity]
             mock_args += ["--sensor-map", args.sensor_map]  # it serves what the client reads
             mock_args += ["--adapter-latency-ms", f"{args.mock_adapter_latency_ms:g}"]
             mock = MockProcess(mock_args, ready_s)

@@ -1,5 +1,8 @@
 """The bench runtime: real-time scheduling and device I/O around one :class:`ControlTick`.
 
+Before the loop: the probe current when the session has one (``RuntimeConfig.probe_current_a``,
+SET_PROBE, before the ENABLE), so the wire's resistance is measured from the first frame on.
+
 Each tick: wait for the tick's time on the clock, read the displacement sensor, take the latest
 driver telemetry, hand both to the tick (:mod:`smabench.bench.tick`: interlocks, temperature
 estimate, the command source, the recorded row), record the row, command the current it returns
@@ -191,6 +194,12 @@ class BenchRuntime:
                 "runs an open-loop protocol"
             )
 
+    def set_feedback(self, source: str) -> None:
+        """The controller's measured position from the next tick: ``laser`` or ``resistance``
+        (the estimate from the wire's resistance; bumpless; ValueError when the session has no
+        self-sense calibration). See :meth:`ControlTick.set_feedback`."""
+        self.tick.set_feedback(source)
+
     def set_gains(self, kp: float, ki: float, kd: float, law: str = "pid") -> None:
         """New gains from the next tick (thread-safe): ``pid`` in W/mm, W/(mm·s), W·s/mm;
         ``ffpid`` / ``ffpid_hold`` in mm/mm, 1/s, s."""
@@ -331,6 +340,8 @@ class BenchRuntime:
         last_tick: float | None = None
         setpoint_undelivered = False
         try:
+            if cfg.probe_current_a > 0:  # before the ENABLE: measured from the first frame on
+                self.source.set_probe_current(cfg.probe_current_a)
             self.source.enable(True)
             while True:
                 now = clock()

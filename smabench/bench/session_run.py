@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 from smabench.bench.priority import realtime_thread
 from smabench.bench.runtime import BenchRuntime, RunResult, RuntimeConfig
+from smabench.bench.tick import FALLBACK_MAX_S
 from smabench.calibration_store import session_block
 from smabench.commands import CommandSource
 from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
@@ -33,6 +34,7 @@ from smabench.sessions import (
     EventLog,
     SessionWriter,
     check_free_space,
+    session_columns,
 )
 from smabench.settings import (
     SETTINGS,
@@ -79,6 +81,14 @@ class RunSettings:
     max_load_kg: float = default("max_load_kg")
     long_life_stress_mpa: float | None = default("long_life_stress_mpa")  # None: the wire's
     allow_high_stress: bool = default("allow_high_stress")
+    # resistance sensing (issue 26), off by default: a probe current while the wire cools, the
+    # position estimated from the resistance (a calibration JSON's path), and its use
+    probe_current_a: float = default("probe_current_a")
+    selfsense: str | None = default("selfsense")
+    feedback: str = default("feedback")
+    fallback: str | None = default("fallback")
+    _selfsense_cal: tuple[str, Any] | None = field(default=None, init=False, repr=False,
+                                                   compare=False)  # fmt: skip
 
     def values(self) -> dict[str, Any]:
         """Every setting as schema values (flat keys; the controller's only with one)."""
@@ -121,6 +131,7 @@ class RunSettings:
         if self.controller is not None:
             self.controller.validate()
         stress = check_run(self.values(), device_limit_a)
+        self.selfsense_calibration()  # a bad file: refused here, before any device opens
         self.runtime_config().validate()
         if self.controller is not None:
             self.build_controller()  # refuses unreachable setpoints before any device opens
@@ -142,6 +153,23 @@ class RunSettings:
             self.temperature_limit_c,
         )
 
+    def selfsense_calibration(self):
+        """The self-sense calibration of :attr:`selfsense`, read once (None without one);
+        SettingError (key ``selfsense``, one line) when the file cannot be read or is not a
+        calibration."""
+        if self.selfsense is None:
+            return None
+        if self._selfsense_cal is None or self._selfsense_cal[0] != self.selfsense:
+            from smabench.physics.selfsense import SelfSenseError, load_calibration
+
+            try:
+                cal = load_calibration(self.selfsense)
+            except SelfSenseError as exc:
+                raise SettingError("selfsense", self.selfsense,
+                                   f"self-sense calibration {exc} ({{name}})") from None
+            self._selfsense_cal = (self.selfsense, cal)
+        return self._selfsense_cal[1]
+
     def runtime_config(self) -> RuntimeConfig:
         return RuntimeConfig(
             rate_hz=self.rate_hz,
@@ -152,6 +180,10 @@ class RunSettings:
             max_duration_s=self.max_duration_s,
             wire=PRESETS[self.wire_preset],
             time_scale=self.time_scale,
+            probe_current_a=self.probe_current_a,
+            selfsense=self.selfsense_calibration(),
+            feedback=self.feedback,
+            fallback=self.fallback,
         )
 
     def folder(self) -> Path:
@@ -207,7 +239,30 @@ def session_meta(
         },
         "settings": to_mapping(values),  # every setting as the runtime's JSON takes it
         "calibration": calibration,  # current driver (read at connect), wire, sensor tare
+        "sensing": sensing_block(settings),  # the wire's resistance as a sensor (issue 26)
     }
+
+
+def sensing_block(settings: RunSettings) -> dict[str, Any]:
+    """``session.json``'s ``sensing``: the probe current, A; the feedback's source and fallback;
+    the bound on the fallback, s; and ``selfsense``: the calibration's path and the calibration
+    itself (:meth:`smabench.selfsense.SelfSenseCalibration.to_dict`, NaN as null), or null."""
+    cal = settings.selfsense_calibration()
+    block: dict[str, Any] = {
+        "probe_current_a": settings.probe_current_a,
+        "feedback": settings.feedback,
+        "fallback": settings.fallback,
+        "fallback_max_s": FALLBACK_MAX_S,
+        "selfsense": None,
+    }
+    if cal is not None:
+        import json
+
+        block["selfsense"] = {
+            "path": str(Path(settings.selfsense).resolve()),
+            "calibration": json.loads(cal.to_json()),
+        }
+    return block
 
 
 def planned_duration_s(settings: RunSettings) -> float:
@@ -330,6 +385,7 @@ def run_session(
         session_meta(
             settings, devices or {}, describe() if describe else None, session_block(source)
         ),
+        columns=session_columns(selfsense=settings.selfsense is not None),
     )
     runtime = BenchRuntime(
         source, sensor, command, writer.append, settings.runtime_config(), on_sample=on_sample,

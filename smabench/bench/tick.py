@@ -19,11 +19,23 @@ tick, in this order:
 4. the temperature estimate (:class:`~smabench.physics.thermal.TemperatureEstimator`) from the
    telemetry's current, wire voltage (so the measured resistance V/I) and ambient (the first
    frame's ambient is also the wire's starting temperature);
-5. the command source: a controller (:class:`~smabench.commands.ObservingCommandSource`) first
+5. with a self-sense calibration (``RuntimeConfig.selfsense``, issue 26, optional): the
+   position estimated from the wire's resistance (:class:`~smabench.selfsense.
+   SelfSenseEstimator` on the row's measured current and wire voltage, every tick, so it is
+   ready whenever it is needed) and the command source's measured position
+   (:meth:`ControlTick.feedback_position`): the laser's, or the estimate with ``feedback
+   resistance``, or the estimate while the laser's reading is invalid with ``fallback
+   resistance``; a change of source is bumpless (the difference at the change decays with
+   :data:`FEEDBACK_BLEND_TAU_S`); rows controlled on the estimate are flagged
+   :data:`~smabench.sessions.FLAG_FEEDBACK_RESISTANCE`. While the estimate carries the control
+   (feedback or fallback resistance) a lost sensor ends the session only when the estimate is
+   not valid (:data:`ESTIMATE_MAX_AGE_S`) or after ``fallback_max_s``;
+6. the command source: a controller (:class:`~smabench.commands.ObservingCommandSource`) first
    observes the estimate, ambient, measured resistance and position; then ``update``;
-6. the interlocks on the result: commanded current, estimated temperature, position limits and
+7. the interlocks on the result: commanded current, estimated temperature, position limits (on
+   the laser's position, or on the estimate the control uses while the laser's is invalid) and
    a broken wire (the position jumped further in one tick than the wire can move: the load fell);
-7. the recorded row (the session columns of :data:`smabench.sessions.COLUMNS`) and the current
+8. the recorded row (the session columns of :data:`smabench.sessions.COLUMNS`) and the current
    to command. The current is commanded EVERY tick, not only on change: that command is what
    renews the driver's setpoint lease (a host whose loop hangs stops renewing it).
 
@@ -38,7 +50,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from smabench.commands import CommandSource, CommandStep, ObservingCommandSource
 from smabench.drivers.base import FLAG_SENSOR_STATUS, Sample, Telemetry
@@ -48,13 +60,18 @@ from smabench.physics.wire import PAPER_WIRE, Wire
 from smabench.sessions import (
     COLUMNS,
     FLAG_AFTER_END,
+    FLAG_FEEDBACK_RESISTANCE,
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
     FLAGS_POSITION_INVALID,
+    SELFSENSE_COLUMNS,
     SENSOR_FLAGS_MASK,
 )
-from smabench.settings import check_current_limit, check_value, default
+from smabench.settings import SettingError, check_current_limit, check_value, default
+
+if TYPE_CHECKING:
+    from smabench.physics.selfsense import SelfSenseCalibration
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +100,24 @@ SAFETY_TRIPS = Flag.OVERTEMP | Flag.OVERCURRENT | Flag.OPEN_WIRE | Flag.ESTOP | 
 POSITION_INVALID_BITS = FLAGS_POSITION_INVALID | FLAG_SENSOR_STATUS
 """Sample flags that make a position invalid: link problems and the sensor's own error bits."""
 
+FALLBACK_MAX_S = 120.0
+"""Longest time without a valid laser reading that the resistance estimate may carry the
+control, s (host clock, as ``sensor_timeout_s``): the position limits then act on the estimate,
+but the broken-wire check needs the laser, and the estimate's error grows with what the
+calibration did not see (another load, a drifting wire); after this the session ends as with a
+lost sensor."""
+ESTIMATE_MAX_AGE_S = 0.5
+"""The resistance estimate is valid while its last resistance (a row with at least the
+calibration's ``min_current_a`` and a wire voltage) is at most this old, s of device time: the
+probe current keeps it fresh; without a current the estimate only holds its last value."""
+FEEDBACK_BLEND_TAU_S = 1.0
+"""A change of the feedback's source is bumpless: the controller's position continues from the
+last one, and the difference between the sources at the change decays with this time constant,
+s of device time."""
+FALLBACK_NOTICE_S = 0.1
+"""A fallback is announced (one warning line, and another when the laser is back) once the
+laser's reading has been invalid this long, s: single late readings, flagged, say nothing."""
+
 
 @dataclass
 class RuntimeConfig:
@@ -107,6 +142,12 @@ class RuntimeConfig:
     wire: Wire = PAPER_WIRE
     time_scale: float = default("time_scale")  # device time / wall time (> 1: a faster mock)
     max_jump_mm: float = 1.0  # broken wire: position jump between two valid samples, mm
+    # resistance sensing (issue 26; smabench.settings): all off by default
+    probe_current_a: float = default("probe_current_a")  # SET_PROBE before the ENABLE
+    selfsense: SelfSenseCalibration | None = None  # the estimate's calibration, loaded
+    feedback: str = default("feedback")  # laser | resistance
+    fallback: str | None = default("fallback")  # None | resistance
+    fallback_max_s: float = FALLBACK_MAX_S  # see FALLBACK_MAX_S
 
     def validate(self) -> None:
         # the operator's settings: ranges from the one schema (smabench.settings)
@@ -120,6 +161,27 @@ class RuntimeConfig:
             raise ValueError("link timeout must be in 0.05 … 0.45 s (safe state within 0.5 s)")
         if not 0.05 <= self.max_jump_mm <= 50.0:
             raise ValueError(f"broken-wire jump must be in 0.05 … 50 mm, got {self.max_jump_mm}")
+        check_value("probe_current_a", self.probe_current_a)
+        check_value("feedback", self.feedback)
+        check_value("fallback", self.fallback)
+        if not self.sensor_timeout_s <= self.fallback_max_s <= 3600.0:
+            raise ValueError(f"fallback bound must be in {self.sensor_timeout_s:g} … 3600 s, got "
+                             f"{self.fallback_max_s}")  # fmt: skip
+        for key, on in (("feedback", self.feedback == "resistance"),
+                        ("fallback", self.fallback == "resistance")):  # fmt: skip
+            if not on:
+                continue
+            if self.selfsense is None:
+                raise SettingError(key, "resistance", "{name} resistance needs a self-sense "
+                                   "calibration (--selfsense CAL.json)")  # fmt: skip
+            need_a = self.selfsense.min_current_a
+            if self.probe_current_a < need_a:
+                raise SettingError(
+                    "probe_current_a", self.probe_current_a,
+                    f"{key} resistance needs a probe current of at least {need_a:g} A (the "
+                    "calibration's min_current_a), so the resistance is measured while the wire "
+                    f"cools; got {self.probe_current_a:g} A ({{name}})",
+                )  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -162,6 +224,76 @@ class ControlTick:
         self._ambient_known = False
         self._reported_fault = ""
         self.ticks = 0
+        # resistance sensing (issue 26): the estimator runs every tick when there is one
+        self.selfsense = None
+        if self.config.selfsense is not None:
+            from smabench.physics.selfsense import SelfSenseEstimator
+
+            self.selfsense = SelfSenseEstimator(self.config.selfsense)
+        self.feedback = self.config.feedback  # live: set_feedback
+        self.columns = COLUMNS + (SELFSENSE_COLUMNS if self.selfsense is not None else ())
+        self._last_r_t_s = -math.inf  # device time of the last row with a resistance
+        self._source = "laser"  # where the command source's position came from last tick
+        self._x_fed_mm = math.nan  # the last finite position fed to the command source
+        self._offset_mm = 0.0  # bumpless transfer: fed = source + offset, offset decaying
+        self._fallback_announced = False
+
+    def set_feedback(self, source: str) -> None:
+        """The command source's measured position from the next tick: ``laser`` or
+        ``resistance`` (bumpless; ValueError without a self-sense calibration). For a live
+        switch (e.g. the GUI's); a session's ``feedback`` setting starts it."""
+        check_value("feedback", source)
+        if source == "resistance" and self.selfsense is None:
+            raise ValueError("feedback resistance needs a self-sense calibration")
+        self.feedback = source
+
+    @property
+    def estimate_carries(self) -> bool:
+        """Whether the resistance estimate may carry the control without the laser now."""
+        return self.selfsense is not None and (
+            self.feedback == "resistance" or self.config.fallback == "resistance"
+        )
+
+    def _estimate(self, t_s: float, current_a: float, voltage_v: float | None
+                  ) -> tuple[float, float, bool]:  # fmt: skip
+        """(resistance, Ω, of this row or NaN; position estimate, mm; whether it is valid)."""
+        est = self.selfsense
+        if est is None:
+            return math.nan, math.nan, False
+        v = math.nan if voltage_v is None else float(voltage_v)
+        x = est.update(t_s, current_a, v)
+        r = math.nan
+        if math.isfinite(current_a) and current_a >= est.calibration.min_current_a and \
+                math.isfinite(v):  # fmt: skip
+            r = v / current_a
+            self._last_r_t_s = t_s
+        return r, x, math.isfinite(x) and t_s - self._last_r_t_s <= ESTIMATE_MAX_AGE_S
+
+    def feedback_position(self, dt_s: float, laser_mm: float, estimate_mm: float,
+                          estimate_ok: bool) -> tuple[float, bool]:  # fmt: skip
+        """(the position the command source gets this tick, mm (NaN: none); whether it came
+        from the resistance estimate). ``laser_mm``: the laser's position, NaN when invalid.
+        Without a calibration it is the laser's, unchanged. A change of source is bumpless: the
+        position continues from the last one fed, the difference decaying with
+        :data:`FEEDBACK_BLEND_TAU_S`."""
+        if self.selfsense is None:
+            return laser_mm, False
+        if self.feedback == "resistance":
+            use = True
+        else:
+            use = (self.config.fallback == "resistance" and not math.isfinite(laser_mm)
+                   and estimate_ok)  # fmt: skip
+        source, x = ("resistance", estimate_mm) if use else ("laser", laser_mm)
+        if source != self._source:
+            self._source = source
+            ok = math.isfinite(self._x_fed_mm) and math.isfinite(x)
+            self._offset_mm = self._x_fed_mm - x if ok else 0.0
+        elif self._offset_mm:
+            self._offset_mm *= math.exp(-max(dt_s, 0.0) / FEEDBACK_BLEND_TAU_S)
+        fed = x + self._offset_mm
+        if math.isfinite(fed):
+            self._x_fed_mm = fed
+        return fed, use
 
     def _end(self, status: str, reason: str, cause: str, row: dict | None = None) -> TickResult:
         return TickResult(row, None, status, reason, cause)
@@ -201,13 +333,14 @@ class ControlTick:
         flags |= int(sample.flags) & SENSOR_FLAGS_MASK
         position_mm = float(sample.position_mm)
         valid = math.isfinite(position_mm) and not int(sample.flags) & POSITION_INVALID_BITS
+        gap_s = clock_s - self._last_good_clock_s  # since the last valid reading before this
         if valid:
             self._last_good_clock_s = clock_s
         else:
             flags |= FLAG_SENSOR_INVALID
             position_mm = math.nan
         lost_s = clock_s - self._last_good_clock_s
-        if lost_s > cfg.sensor_timeout_s:
+        if lost_s > cfg.sensor_timeout_s and not self.estimate_carries:
             return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s", "device")
 
         starting = clock_s <= cfg.link_timeout_s  # start-up grace: the first frames may be old
@@ -259,22 +392,38 @@ class ControlTick:
         temperature_c = self.estimator.update(
             dt_s, current_a if math.isfinite(current_a) else 0.0, voltage_v, ambient_c
         )
+        resistance_ohm, estimate_mm, estimate_ok = self._estimate(t_s, current_a, voltage_v)
+        if lost_s > cfg.sensor_timeout_s:  # only here when the estimate may carry the control
+            if not estimate_ok:
+                return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s, and "
+                                 "no valid position from the wire's resistance to control on",
+                                 "device")  # fmt: skip
+            if lost_s > cfg.fallback_max_s:
+                return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s: "
+                                 f"longer than the {cfg.fallback_max_s:g} s the position from "
+                                 "the wire's resistance may carry the control", "device")
+        fed_mm, on_estimate = self.feedback_position(dt_s, position_mm, estimate_mm, estimate_ok)
+        if on_estimate:
+            flags |= FLAG_FEEDBACK_RESISTANCE
+        if self.selfsense is not None and self.feedback == "laser":
+            self._announce_fallback(valid, on_estimate, gap_s)
 
         if self.observing:  # a controller: the estimate it plans with
             self.command.observe(
                 temperature_c,
                 ambient_c,
                 self.estimator.measured_resistance_ohm,
-                position_mm if valid else None,
+                fed_mm if math.isfinite(fed_mm) else None,
             )
-        step: CommandStep = self.command.update(t_s, position_mm)
+        step: CommandStep = self.command.update(t_s, fed_mm)
         current_set_a = float(step.current_set_a)
-        interlock = self._interlock(current_set_a, temperature_c, position_mm)
+        limited_mm = position_mm if valid or not on_estimate else fed_mm
+        interlock = self._interlock(current_set_a, temperature_c, limited_mm)
         if not interlock and valid:
             interlock = self._broken_wire(t_s, position_mm)
         if interlock:
             flags |= FLAG_INTERLOCK
-        row = dict.fromkeys(COLUMNS)
+        row = dict.fromkeys(self.columns)
         row.update(
             t_s=t_s,
             current_set_A=current_set_a,
@@ -289,12 +438,30 @@ class ControlTick:
             flags=flags,
             temperature_C=telemetry.thermocouple_c if telemetry is not None else None,
         )
+        if self.selfsense is not None:
+            row.update(resistance_ohm=resistance_ohm, position_est_mm=estimate_mm)
         self.ticks += 1
         if interlock:
             return self._end("aborted", interlock, "interlock", row)
         if step.done:
             return self._end("completed", "protocol completed", "completed", row)
         return TickResult(row, current_set_a)
+
+    def _announce_fallback(self, valid: bool, on_estimate: bool, gap_s: float) -> None:
+        """One warning line when the control falls back on the resistance estimate (once the
+        laser has been invalid for :data:`FALLBACK_NOTICE_S`) and one when the laser is back.
+        ``gap_s``: host time since the laser's last valid reading before this tick, s."""
+        if on_estimate and not self._fallback_announced and gap_s >= FALLBACK_NOTICE_S:
+            self._fallback_announced = True
+            log.warning(
+                "displacement sensor: no valid reading for %.2f s; control goes on with the "
+                "position from the wire's resistance (rows flagged feedback_resistance; the "
+                "session ends if the laser stays away %g s)", gap_s, self.config.fallback_max_s,
+            )  # fmt: skip
+        elif valid and self._fallback_announced:
+            self._fallback_announced = False
+            log.warning("displacement sensor back after %.2f s: control on the laser again",
+                        gap_s)  # fmt: skip
 
     def _interlock(self, current_set_a: float, temperature_c: float, position_mm: float) -> str:
         cfg = self.config
@@ -355,11 +522,15 @@ class ControlTick:
             dt_s * cfg.time_scale, current_a if math.isfinite(current_a) else 0.0, voltage_v,
             ambient_c,
         )  # fmt: skip
-        row = dict.fromkeys(COLUMNS)
+        resistance_ohm, estimate_mm, _ = self._estimate(clock_s * cfg.time_scale, current_a,
+                                                        voltage_v)  # fmt: skip
+        row = dict.fromkeys(self.columns)
         row.update(
             t_s=clock_s * cfg.time_scale, current_set_A=0.0, current_A=current_a,
             voltage_V=voltage_v, ambient_C=ambient_c, position_mm=position_mm, setpoint_mm=None,
             temperature_est_C=temperature_c, mode=mode, cycle=cycle, flags=flags,
             temperature_C=telemetry.thermocouple_c if telemetry is not None else None,
         )  # fmt: skip
+        if self.selfsense is not None:
+            row.update(resistance_ohm=resistance_ohm, position_est_mm=estimate_mm)
         return row

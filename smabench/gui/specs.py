@@ -20,6 +20,12 @@ HIDDEN = {
     "time_scale",  # follows the mock bench's speed
     "out_dir",  # the Sessions tab's folder
     "session_id",  # named by time, protocol and load
+    # resistance sensing (issue 26): run settings (the runtime's JSON takes them), not in the
+    # window yet; the window's sessions run without them, as before
+    "probe_current_a",
+    "selfsense",
+    "feedback",
+    "fallback",
 }
 GAIN_LAWS = tuple((law, gs.label, gs.units) for law, gs in GAIN_SETS.items())
 

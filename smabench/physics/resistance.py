@@ -37,6 +37,7 @@ __all__ = [
     "FLEXINOL_RESISTIVITY",
     "FLEXINOL_WITH_RPHASE",
     "MeasurementChain",
+    "RESISTIVITY_PRESETS",
     "ResistivityModel",
     "measured_resistance_ohm",
     "resistance_ohm",
@@ -265,6 +266,12 @@ FLEXINOL_WITH_RPHASE = replace(
     rf_c=56.0,
 )
 """Flexinol 0.38 mm, 70 °C grade, with an R-phase bump of ≈ +15 % on cooling (assumed)."""
+
+RESISTIVITY_PRESETS: dict[str, ResistivityModel] = {
+    "flexinol": FLEXINOL_RESISTIVITY,
+    "flexinol-rphase": FLEXINOL_WITH_RPHASE,
+}
+"""The presets by the names command lines use (``smabench mock --resistivity NAME``)."""
 
 ADS1115_KELVIN_CHAIN = MeasurementChain(
     # firmware/hardware/electrical.toml [precise_adc]: AIN0-AIN1 at ±2.048 V (wire_fsr_v, PGA 2,

@@ -333,6 +333,42 @@ def test_a_late_tick_is_a_flagged_missed_deadline_and_the_schedule_restarts():
     assert result.periods_s.max() == pytest.approx(0.02, abs=1e-9)
 
 
+def test_a_process_stopped_mid_tick_ends_as_its_stall_not_as_the_drivers_silence():
+    """SIGSTOP can land anywhere in a tick: here in the sensor's read (or between the read and
+    the tick), 2 s long. On resuming, the link's reader thread has not yet taken in the frames
+    the kernel buffered, so the newest frame is 2 s old: the driver did not go silent, this
+    process did. The session ends on the process's stall (cause "host"), whatever the point
+    where it was stopped; the lease turned the output off meanwhile (tests/faults/test_signals
+    stops a real run; this is the race it met, made certain)."""
+    bench = SimBench(2.0, seed=1)
+    sensor, source = bench.sensor, bench.source
+    stop_at = {"tick": 200}
+    real_read, real_latest = sensor.read_or_flag, source.latest
+
+    def read_or_flag():
+        if sensor.reads == stop_at["tick"]:
+            before = real_latest()  # the newest frame this process had taken in
+            bench.clock.sleep(2.0)  # stopped, the bench running on
+            calls = {"n": 0}
+
+            def latest_once():  # the reader thread runs only after the loop's next look
+                calls["n"] += 1
+                if calls["n"] <= 2:
+                    return before
+                source.latest = real_latest
+                return real_latest()
+
+            source.latest = latest_once
+            return real_read()
+        return real_read()
+
+    sensor.read_or_flag = read_or_flag
+    result, rows, _ = session(Constant(0.8), bench=bench)
+    assert result.status == "aborted" and result.cause == "host", result.reason
+    assert result.reason.startswith("the recording process stalled for 2.0"), result.reason
+    assert_output_off(bench)
+
+
 # ----------------------------------------------------------------------------- recorded physics
 SPEED_PROTOCOLS = {
     "cycles": dict(cycles=2, heat_s=3.0, current_a=1.4),

@@ -42,7 +42,7 @@ from smabench.bench.tick import OUTPUT_OFF_UNEXPLAINED, ControlTick, RuntimeConf
 from smabench.commands import CommandSource
 from smabench.control.controller import MODES, Controller
 from smabench.drivers.base import CurrentSourceDevice, DisplacementDevice
-from smabench.drivers.protocol import Flag
+from smabench.drivers.protocol import Flag, Telemetry
 from smabench.sessions import (
     FLAG_DEADLINE_MISSED,
     FLAG_INTERLOCK,
@@ -117,6 +117,15 @@ class FrozenSensor:
                 f"{self.t_max_c:.0f} °C, through its transformation"
             )
         return ""
+
+
+def _age_at(telemetry: Telemetry | None, now: float) -> float | None:
+    """The telemetry's age at the tick's time ``now`` (the runtime's clock, as ``host_time``),
+    s; None before any frame. Not the age when the tick reads it: a process stopped between
+    the two (SIGSTOP, a starved CPU) would see its own stall as the driver's silence, before
+    its reader thread took in the frames that came meanwhile. The stall is said at the next
+    tick's start; a frame newer than ``now`` is age 0."""
+    return None if telemetry is None else max(0.0, now - telemetry.host_time)
 
 
 class BenchRuntime:
@@ -372,11 +381,12 @@ class BenchRuntime:
                     break
                 estop, stop = self._estop.is_set(), self._stop.is_set()
                 sample = self.sensor.read_or_flag()
+                telemetry = self.source.latest()
                 out = self.tick.step(
                     now - t0,
                     sample,
-                    self.source.latest(),
-                    self.source.telemetry_age_s(),
+                    telemetry,
+                    _age_at(telemetry, now),
                     self.source.fault_text(),
                     flags=flags,
                     estop=estop or self._estop.is_set(),

@@ -45,7 +45,7 @@ lint: venv
 # two workers, a test file each at a time (module fixtures stay in one process): most files wait
 # on device time at low CPU, so the analysis files' fits use the second core meanwhile
 test-python: venv
-	$(VENV)/bin/pytest -q -n 2 --dist loadfile --durations=20
+	$(VENV)/bin/pytest -q -n 2 --dist loadgroup --durations=20
 
 # the emulator tests in test-python need the .elf, the simavr harness and the watchdog image
 firmware-build: sysdeps

@@ -27,7 +27,8 @@ from smabench.bench.session_run import RunSettings, run_session
 from smabench.protocols import ProtocolSettings
 from smabench.sessions import FLAG_SENSOR_INVALID, load_session
 
-pytestmark = pytest.mark.slow  # real processes and transports: seconds each
+# real processes and transports: seconds each
+pytestmark = [pytest.mark.slow, pytest.mark.realtime_bench]
 
 RATE_HZ = 50.0
 """Loop rate of these sessions: what they test does not need the bench's 200 Hz, and a quarter

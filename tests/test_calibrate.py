@@ -35,6 +35,8 @@ from smabench.drivers.mock.serial_device import SerialDevice
 from smabench.physics.thermal import step_exact
 from smabench.physics.wire import PAPER_WIRE
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 REPO = Path(__file__).resolve().parent.parent
 SIM = Path(os.environ.get("SMABENCH_SIM", REPO / "firmware/build/sim/smabench-sim"))
 ELF = Path(os.environ.get("SMABENCH_ELF", REPO / "firmware/build/avr/smabench-cd.elf"))

@@ -7,6 +7,8 @@ import json
 import pytest
 from conftest import flexinol_files
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 # Targets from issue 2, checked on every measured loop (and on held-back loads of the same wire).
 NRMSE_TARGET_PERCENT = {"1": 3.0, "2": 3.5, "sigmoid": 1.0, "preisach": 5.0}
 

@@ -23,6 +23,8 @@ from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
 from smabench.protocols import ProtocolSettings
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 LATENT = Effects(latent_heat=24000)
 
 

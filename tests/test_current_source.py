@@ -37,7 +37,7 @@ OFF_A = ELECTRICAL.current_adc_a_per_count  # the firmware reads ADC code 0 as h
 
 F = p.Flag
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.realtime_bench]
 
 
 def wait_until(cond, timeout_s: float, what: str = "condition", poll_s: float = 0.002):

@@ -24,6 +24,8 @@ from smabench.drivers.mock.cut import PUMP_TAU_S, PUMP_TRIP_V, PUMPED_V
 from smabench.drivers.mock.firmware import WDT_INTERRUPT_MS, Electrical, MockFirmware
 from smabench.hardware import ELECTRICAL
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 F = p.Flag
 S = p.Status
 TELEMETRY_MS = 10  # the client's telemetry period below

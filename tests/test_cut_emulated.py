@@ -36,6 +36,7 @@ pytestmark = [
     pytest.mark.slow,
     pytest.mark.timeout(120),
     pytest.mark.skipif(not (SIM.is_file() and ELF.is_file()), reason="make -C firmware elf sim"),
+    pytest.mark.realtime_bench,
 ]
 
 

@@ -45,6 +45,8 @@ from smabench.drivers.base import (
     DisplacementDevice,
 )
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 IMPLEMENTATIONS = ("sim", "mock", "emulated")
 SETPOINT_A = 0.8
 TOLERANCE_A = 0.04  # 5 %: the firmware settles within 5 % in 50 ms (PROTOCOL.md)

@@ -51,6 +51,7 @@ pytestmark = [
         bool(_MISSING) and not os.environ.get("CI"),
         reason=f"firmware build missing: {_MISSING} (build it with `make -C firmware elf sim`)",
     ),
+    pytest.mark.realtime_bench,
 ]
 
 SETTLING_MS = 50  # PROTOCOL.md: within 5 % of a step within 50 ms

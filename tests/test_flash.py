@@ -27,6 +27,8 @@ import pytest
 from smabench.drivers.current_source import CurrentSource, LinkTimeout
 from smabench.drivers.mock.bench import BOOTLOADER_HEX, SIM_BIN, SIM_ELF, realtime_child
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 REPO = Path(__file__).resolve().parent.parent
 APP_HEX = SIM_ELF.with_suffix(".hex")  # `make -C firmware elf` writes both
 OLD_NANO_HEX = Path(

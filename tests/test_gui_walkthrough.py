@@ -51,7 +51,7 @@ WALK_MOCK_SPEED = 3.0
 land in the second cycle, 7 s of device time, 2.3 s of wall time at 3×)."""
 DOCS = Path(__file__).resolve().parents[1] / "docs"
 SIZES = ((1280, 800), (1400, 900), (1920, 1080))
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime_bench]
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.realtime_bench]
 HERE = Path(__file__).resolve().parent
 INPUT_TO_COMMAND_LIMIT_MS = 20.0
 

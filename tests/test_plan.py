@@ -17,6 +17,8 @@ from smabench import plan as planmod
 from smabench.plan import PlanError, dry_run, execute, load_plan, load_state, new_state
 from smabench.sessions import SessionWriter, load_session
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 REPO = Path(__file__).resolve().parent.parent
 EXAMPLE = REPO / "sessions" / "plans" / "example.toml"
 

@@ -50,6 +50,8 @@ from smabench.sessions import (
 )
 from smabench.settings import SettingError
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 PERIOD_S = 0.005  # 200 Hz, the bench's loop
 PROBE_A = 0.1
 CYCLES = dict(name="cycles", heat_s=3.0, current_a=1.2)

@@ -34,7 +34,7 @@ BAUMER = "baumer-om20-om30-rs485"
 REAL = (RIFTEK, BAUMER)
 T = 0.5  # per-request timeout: generous, a loaded machine must not fail these
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.realtime_bench]
 
 
 def test_every_shipped_map_follows_the_declared_schema():

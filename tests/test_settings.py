@@ -22,6 +22,8 @@ from smabench.control import MODES, ControllerSettings, PIDGains, gains_for_load
 from smabench.physics.wire import PRESETS, Wire, stress_mpa
 from smabench.protocols import ProtocolSettings
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 REPO = Path(__file__).resolve().parent.parent
 NUMERIC = [s for s in S.SETTINGS.values() if s.kind in ("float", "int", "floats")]
 # `smabench run` options before the schema (README, tests, scripts use them): all must stay

@@ -9,6 +9,8 @@ import pytest
 
 from smabench.drivers.mock.plant_link import TRACE_COLUMNS, PlantLink
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 
 def read_trace(path) -> dict[str, np.ndarray]:
     with open(path, newline="") as fh:

@@ -20,6 +20,8 @@ from smabench.sessions import load_session
 
 from .conftest import assert_wire_safe
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 HERE = Path(__file__).resolve().parent
 RATE_HZ = 200.0
 

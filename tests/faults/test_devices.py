@@ -26,6 +26,8 @@ from .conftest import (
     smabench_command,
 )
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 REPO = Path(__file__).resolve().parents[2]
 
 

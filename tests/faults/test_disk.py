@@ -27,6 +27,8 @@ from .conftest import (
     smabench_command,
 )
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 
 def _row(i: int) -> dict:
     return {"t_s": i * 0.005, "current_A": 0.5, "position_mm": 1.0 + i * 1e-4, "cycle": i // 400,

@@ -22,7 +22,8 @@ import pytest
 from journeys.flaws import with_bench_flaws
 from journeys.harness import REPO, Installed, Recordings, cycles_session
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]  # minutes each on a loaded machine
+# minutes each on a loaded machine
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900), pytest.mark.realtime_bench]
 
 CYCLES = 4  # as the other journeys record them (shared); the first trains every fold
 

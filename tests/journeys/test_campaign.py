@@ -17,6 +17,8 @@ import pytest
 
 from journeys.harness import REPO, Installed
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 # 1.4 A held for 20 s: the driver's conservative energy budget (R at its hottest, the lowest
 # convection) reaches its 180 °C maximum after ≈ 11 s and latches OVER-TEMPERATURE, while the
 # plant model (and the host's estimate) stay below the plan's 240 °C limit: the dry run passes

@@ -13,6 +13,8 @@ import pytest
 from journeys.flaws import with_bench_flaws
 from journeys.harness import Installed, Recordings, cycles_session
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 NOT_CC = "not a Clausius–Clapeyron slope"
 
 

@@ -12,6 +12,8 @@ import pytest
 from journeys.docrunner import Block, blocks
 from journeys.harness import REPO, Installed, source_files
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 DOCS = sorted(
     [REPO / "README.md", *REPO.glob("docs/*.md"), *REPO.glob("firmware/**/*.md"),
      *REPO.glob("drivers/**/*.md"), *REPO.glob("sessions/**/*.md")]

@@ -18,6 +18,8 @@ from test_sensor_maps import invalid_maps
 
 from journeys.harness import Installed, Recordings, cycles_session
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 
 @pytest.fixture(scope="module")
 def session_1kg(recordings: Recordings) -> Path:

@@ -49,6 +49,7 @@ def test_sigmoid_never_worse_than_model1_on_the_demo_physics(
 
 
 @pytest.mark.slow
+@pytest.mark.realtime_bench  # the demo's mock bench at 5×
 @pytest.mark.parametrize("seed", [1, 2])
 def test_real_demo_sigmoid_never_worse_than_model1(installed: Installed, cwd: Path, seed: int):
     proc = installed.ok("demo", "--seed", seed, "--out", "sessions", cwd=cwd, timeout_s=600)

@@ -15,6 +15,8 @@ import pytest
 
 from journeys.harness import Installed
 
+pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
+
 QUICK_S = 20.0
 """An option error is said at start-up: the interpreter and the CLI's imports only (a few
 seconds on a loaded 2-core machine), never a device's timeout or a mock's start-up."""

@@ -880,6 +880,22 @@ def test_two_stand_ins_in_one_process_share_no_state():
     assert b.eeprom[5] == 0xFF  # a blank chip each
 
 
+def test_a_killed_process_leaves_no_copy_of_the_core_behind(tmp_path):
+    """Each stand-in loads a private copy of the core; a process killed with SIGKILL (a mock
+    bench pulled out, in the faults tests) runs no clean-up, so the copy must already be gone
+    once loaded: nothing of it is left in the temporary folder."""
+    probe = (
+        "import os, signal\n"
+        "from smabench.drivers.mock.firmware import MockFirmware\n"
+        "a, b = MockFirmware(0.0), MockFirmware(0.0)\n"
+        "os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+    assert done.returncode == -9, done.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_pty_that_closed_is_not_reopened_under_its_number(dev):
     """A pseudo-terminal (a mock bench, an emulator) that closed never comes back: the kernel
     gives its number to the next program that asks for a pty. The link gives up at once and

@@ -190,10 +190,6 @@ class HostIO(ctypes.Structure):
     ]
 
 
-_private_dir: tempfile.TemporaryDirectory | None = None
-_counter = 0
-
-
 def _dlclose(handle: int) -> None:
     with contextlib.suppress(OSError, AttributeError):  # else the copy stays mapped
         _ctypes.dlclose(handle)
@@ -206,14 +202,14 @@ class Core:
     :attr:`state` and :attr:`eeprom` are views into this instance's memory."""
 
     def __init__(self) -> None:
-        global _private_dir, _counter
         src = library_path()
-        with _build_lock:
-            if _private_dir is None:
-                _private_dir = tempfile.TemporaryDirectory(prefix="smabench-core-")
-            _counter += 1
-            copy = Path(_private_dir.name) / f"core-{os.getpid()}-{_counter}.so"
-        shutil.copyfile(src, copy)  # a unique file: dlopen shares a path or an inode
+        # a unique file (dlopen shares a path or an inode), unlinked once loaded: nothing is left
+        # in the temporary folder even when the process is killed (a folder per process was,
+        # 400 of them on this machine after a few days of tests that SIGKILL a mock bench)
+        fd, name = tempfile.mkstemp(prefix="smabench-core-", suffix=".so")
+        copy = Path(name)
+        with os.fdopen(fd, "wb") as out, open(src, "rb") as lib_in:
+            shutil.copyfileobj(lib_in, out)
         try:
             # PyDLL: the calls keep the interpreter lock. Each is a few µs of C that never
             # blocks; CDLL dropped and re-took the lock around every one, several per 1 ms step,

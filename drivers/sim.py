@@ -32,6 +32,8 @@ import logging
 import math
 import threading
 
+import numpy as np
+
 from smabench.drivers import protocol as p
 from smabench.drivers.base import FLAG_SENSOR_STATUS, FLAG_TIMEOUT, Sample
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
@@ -152,9 +154,14 @@ class SimCurrentSource:
         current_limit_a: float | None = None,
         electrical: Electrical | None = None,
         powered_s: float = POWERED_BEFORE_S,
+        wire_noise_v: float = 0.0,
+        seed: int = 0,
     ) -> None:
         """``powered_s``: how long the device has been running when the clock reads the plant's
-        time (a bench's driver is powered before a session: its NTC has been read, 100 ms)."""
+        time (a bench's driver is powered before a session: its NTC has been read, 100 ms).
+        ``wire_noise_v``: Gaussian noise of the wire-voltage channel at the wire, V RMS, drawn
+        per 1 ms core tick (about one ADS1115 conversion at 860 SPS; see
+        :data:`smabench.physics.resistance.ADS1115_KELVIN_CHAIN`), ``seed`` its generator's."""
         lo, hi = p.TELEMETRY_PERIOD_RANGE_S
         if not lo <= telemetry_period_s <= hi:
             raise ValueError(f"telemetry period must be in {lo} … {hi} s")
@@ -162,6 +169,10 @@ class SimCurrentSource:
         self.clock = plant.clock
         self.telemetry_period_s = telemetry_period_s
         self.electrical = electrical or Electrical()  # the inputs besides the wire
+        if not wire_noise_v >= 0.0:
+            raise ValueError(f"wire_noise_v must be ≥ 0 V, got {wire_noise_v}")
+        self.wire_noise_v = wire_noise_v
+        self._noise_rng = np.random.default_rng(seed)
         self._t0_s = plant.t_s - powered_s  # device time 0 (the core's reset)
         self.fw = MockFirmware(0.0)
         state = plant.state
@@ -207,11 +218,15 @@ class SimCurrentSource:
 
     def after_step(self, t_s: float, h: float, state: PlantState) -> None:
         """A core tick when the sub-step ended on one: the plant's wire as the sink's load."""
+        offset_v = self.electrical.wire_offset_v
+        if self.wire_noise_v > 0.0:
+            offset_v += self.wire_noise_v * float(self._noise_rng.standard_normal())
         wire = dataclasses.replace(
             self.electrical,
             resistance_ohm=state.resistance_ohm,
             ambient_c=state.ambient_c,
             open_wire=self.plant.broken or self.electrical.open_wire,
+            wire_offset_v=offset_v,
         )
         self._frames(self.fw.tick(self._device_ms(t_s), wire), t_s)
         self.current_a = self.fw.current_ma / 1000.0
@@ -401,7 +416,8 @@ class SimDisplacementSensor:
 
 class SimBench:
     """Clock, plant, current source and sensor wired together (units in names);
-    ``resistivity``: the plant's wire resistance from that model (:class:`Plant`)."""
+    ``resistivity``: the plant's wire resistance from that model (:class:`Plant`);
+    ``wire_noise_v``: the wire-voltage channel's noise (:class:`SimCurrentSource`)."""
 
     def __init__(
         self,
@@ -418,6 +434,7 @@ class SimBench:
         lease_s: float = p.LEASE_DEFAULT_S,
         clock: SimClock | None = None,
         resistivity: ResistivityModel | None = None,
+        wire_noise_v: float = 0.0,
     ) -> None:
         if not 0.0 < load_kg <= 10.0:
             raise ValueError(f"load must be in (0, 10] kg, got {load_kg}")
@@ -430,6 +447,8 @@ class SimBench:
             telemetry_period_s=telemetry_period_s,
             host_timeout_s=host_timeout_s,
             lease_s=lease_s,
+            wire_noise_v=wire_noise_v,
+            seed=seed,
         )
         self.sensor = SimDisplacementSensor(self.plant)
 

@@ -499,6 +499,9 @@ def _add_bench_commands(sub) -> None:
     from smabench.characterize.cli import add_bench_characterize
 
     add_bench_characterize(bsub)
+    from smabench.selfsense_bench import add_bench_selfsense
+
+    add_bench_selfsense(bsub)
 
     add_bench_gui(bsub, positive())
 

@@ -8,66 +8,42 @@ Figures are RMS errors of the estimate against the laser in % of the calibration
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import io
 import json
 import re
-from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from smabench import selfsense as ss
+from smabench import selfsense_bench as sb
 from smabench.physics.plant import Plant, simulate_plant, transformation_temperatures_c
 from smabench.physics.resistance import (
-    ADS1115_KELVIN_CHAIN,
     FLEXINOL_RESISTIVITY,
     FLEXINOL_WITH_RPHASE,
-    measured_resistance_ohm,
     resistance_ohm,
     rphase_fraction,
 )
-from smabench.physics.wire import FLEXINOL_038_70C
 from smabench.sessions import FLAG_SENSOR_INVALID, load_session, write_session
 
-WIRE = FLEXINOL_038_70C
-LOAD_KG = 2.0
-DT_S = 0.005  # 200 Hz, the bench loop's rate
-HEAT_A, PROBE_A = 1.4, 0.1
-MAJOR = [(4.0, HEAT_A), (10.0, PROBE_A)]
-# Partial loops: heating cut short in As…Af (1.3-1.5 s), cooling cut short in Ms…Mf
-# (6.8-7.4 s, at 0.1 A from ~112 °C), between full cycles.
-PARTIAL = [
-    *MAJOR, (1.5, HEAT_A), (10.0, PROBE_A), (4.0, HEAT_A), (7.0, PROBE_A), *MAJOR,
-    (1.3, HEAT_A), (10.0, PROBE_A), (4.0, HEAT_A), (7.4, PROBE_A), (1.7, HEAT_A), (10.0, PROBE_A),
-    (1.4, HEAT_A), (6.8, PROBE_A), *MAJOR,
-]  # fmt: skip
+# the runs of `smabench bench selfsense` (one source for its figures and these tests)
+WIRE, LOAD_KG, DT_S, HEAT_A, PROBE_A = sb.WIRE, sb.LOAD_KG, sb.DT_S, sb.HEAT_A, sb.PROBE_A
+MAJOR, PARTIAL = sb.MAJOR, sb.PARTIAL
 
 
 # --------------------------------------------------------------------------- helpers
-def _profile(phases):
-    """(t_s, current_a, cycle): a cycle starts with each heating."""
-    cur, cyc, k = [], [], -1
-    for duration_s, current_a in phases:
-        k += current_a > ss.PROBE_LEVEL_A
-        n = int(round(duration_s / DT_S))
-        cur.append(np.full(n, current_a))
-        cyc.append(np.full(n, max(k, 0)))
-    cur = np.concatenate(cur)
-    return np.arange(len(cur)) * DT_S, cur, np.concatenate(cyc)
+_profile = sb.profile
 
 
 def _plant(phases, load_kg=LOAD_KG, model=FLEXINOL_RESISTIVITY, seed=0):
-    t, cur, cyc = _profile(phases)
-    trace = simulate_plant(t, cur, load_kg=load_kg, wire=WIRE, resistivity=model, seed=seed)
-    return t, cur, cyc, trace
+    run = sb.plant_run(phases, load_kg, model, seed)
+    return run.t_s, run.current_a, run.cycle, run.trace
 
 
 def _measured_v(trace, cur, noise_factor, seed):
-    chain = replace(
-        ADS1115_KELVIN_CHAIN, noise_rms_v=ADS1115_KELVIN_CHAIN.noise_rms_v * noise_factor
-    )
-    v, _ = measured_resistance_ohm(cur, trace.voltage_v, chain, np.random.default_rng(seed))
-    return v
+    return sb.measured_voltage_v(cur, trace.voltage_v, noise_factor, seed)
 
 
 def _write(folder, sim, noise_factor, seed, load_kg, flag_rows=None):
@@ -349,3 +325,47 @@ def test_cli_refuses_bad_input_with_one_line(cli, tmp_path):
         assert len(err.splitlines()) == 1 and needle in err, err
         assert err.startswith("smabench selfsense: error:")
     assert not (tmp_path / "c.json").exists() and not (tmp_path / "e.csv").exists()
+
+
+# --------------------------------------------------------------------------- the benchmark
+@pytest.fixture(scope="module")
+def bench_run(tmp_path_factory):
+    """`smabench bench selfsense --noise 1` once (about 45 s of simulated sessions)."""
+    from smabench.cli import main
+
+    out = tmp_path_factory.mktemp("bench-selfsense") / "figures.json"
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        rc = main(["bench", "selfsense", "--noise", "1", "--json", str(out)])
+    return rc, buf.getvalue(), json.loads(out.read_text())
+
+
+@pytest.mark.slow
+def test_bench_selfsense_prints_every_figure_against_its_target(bench_run):
+    rc, stdout, res = bench_run
+    assert rc == 0
+    figs = res["noise"]["1x"]
+    assert res["targets"] == sb.TARGETS and set(sb.TARGETS) <= set(figs)
+    lines = stdout.splitlines()
+    for key in sb.TARGETS:
+        assert any(ln.startswith(key) for ln in lines), stdout
+    assert f"{sum(figs['met'].values())} of {len(sb.TARGETS)} targets met" in stdout
+    # the estimation figures are the ones the tests above measure, and meet their targets
+    for key in ("major_pct", "load_minus50_pct", "load_plus50_pct", "partial_pct"):
+        assert figs[key] <= sb.TARGETS[key] and figs["met"][key], (key, figs[key])
+    assert set(figs["tracking"]) == set(sb.SINES)
+    assert all(s["laser_mm"] > 0 and s["resistance_mm"] > 0 for s in figs["tracking"].values())
+    assert figs["hold_on_laser_mm"] < 0.05 and figs["fallback_hold_mm"] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open (issue 26): PID on the estimate tracks the control "
+                   "table's sines 2-4× worse than on the laser (target 1.5×) and holds a "
+                   "position within 43 % of stroke with the laser gone 60 s (target 5 %): under "
+                   "the PID's varying current the firmware withholds the wire voltage (no R in "
+                   "94 % of the rows of a hold on the laser: a voltage goes out only with a "
+                   "current within 3 % + 10 mA of the one it was measured at), the estimate "
+                   "freezes and the loop closed on it cycles between the probe and 2 A")
+def test_bench_selfsense_closed_loop_targets(bench_run):
+    figs = bench_run[2]["noise"]["1x"]
+    assert figs["met"]["tracking_ratio"] and figs["met"]["fallback_hold_pct"], figs

@@ -23,8 +23,6 @@ from smabench.physics.effects import Effects
 from smabench.physics.wire import PAPER_WIRE
 from smabench.protocols import ProtocolSettings
 
-pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
-
 LATENT = Effects(latent_heat=24000)
 
 
@@ -392,6 +390,7 @@ def test_bench_control_offline_case_settles_every_step_edge():
     assert step["samples"] == round(20.0 / 0.0125) + round(8.0 / 0.0125) + 1
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_bench_control_smoke_on_the_mock(tmp_path):
     from smabench.bench.control_bench import Case, format_table, run_case
@@ -424,6 +423,7 @@ def run_in_process(cli):
     os.sched_setscheduler(0, policy, param)
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_run_cli_closed_loop_with_switch(run_in_process, tmp_path):
     run_cli = run_in_process
@@ -448,6 +448,7 @@ def test_run_cli_closed_loop_with_switch(run_in_process, tmp_path):
     assert MODES == ("open_loop", "pid", "ff", "ffpid")
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_run_cli_takes_ffpid_gains_and_stores_them(run_in_process, tmp_path):
     run_cli = run_in_process

@@ -3,6 +3,7 @@ figure checked (:mod:`journeys.docrunner` says how blocks are marked)."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import subprocess
 from pathlib import Path
@@ -12,13 +13,19 @@ import pytest
 from journeys.docrunner import Block, blocks
 from journeys.harness import REPO, Installed, source_files
 
-pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
-
 DOCS = sorted(
     [REPO / "README.md", *REPO.glob("docs/*.md"), *REPO.glob("firmware/**/*.md"),
      *REPO.glob("drivers/**/*.md"), *REPO.glob("sessions/**/*.md")]
 )  # fmt: skip
 BLOCKS = [b for doc in DOCS for b in blocks(doc)]
+STARTS_A_BENCH = re.compile(r"--mock\b|--port\b|\bmake run\b|\bsmabench (mock|demo|gui)\b")
+"""A block with this in its script runs a real-time bench: it joins the ``realtime_bench`` tests
+(tests/conftest.py); the analysis blocks run beside them."""
+
+
+def _param(block: Block):
+    marks = [pytest.mark.realtime_bench] if STARTS_A_BENCH.search(block.script) else []
+    return pytest.param(block, id=block.name, marks=marks)
 
 
 def scratch_checkout(dest: Path) -> Path:
@@ -42,7 +49,7 @@ def test_every_block_is_found_and_well_formed():
 
 @pytest.mark.slow
 @pytest.mark.timeout(1800)  # the block's own limit (doc-run: timeout) is the subprocess's
-@pytest.mark.parametrize("block", BLOCKS, ids=[b.name for b in BLOCKS])
+@pytest.mark.parametrize("block", [_param(b) for b in BLOCKS])
 def test_doc_block_runs(installed: Installed, tmp_path: Path, block: Block) -> None:
     if block.skip:
         pytest.skip(f"{block.name}: {block.skip}")

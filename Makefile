@@ -42,8 +42,9 @@ $(STAMP): pyproject.toml
 lint: venv
 	$(VENV)/bin/ruff check smabench drivers tests firmware/hardware sessions/samples
 
-# two workers, a test file each at a time (module fixtures stay in one process): most files wait
-# on device time at low CPU, so the analysis files' fits use the second core meanwhile
+# two workers, a test file each at a time (module fixtures stay in one process), except that the
+# tests starting a real-time bench form one group, run one after another in one worker
+# (tests/conftest.py REALTIME_GROUP): the analysis files' fits use the other core meanwhile
 test-python: venv
 	$(VENV)/bin/pytest -q -n 2 --dist loadgroup --durations=20
 

@@ -50,8 +50,6 @@ from smabench.sessions import (
 )
 from smabench.settings import SettingError
 
-pytestmark = pytest.mark.realtime_bench  # starts a real-time bench: see tests/conftest.py
-
 PERIOD_S = 0.005  # 200 Hz, the bench's loop
 PROBE_A = 0.1
 CYCLES = dict(name="cycles", heat_s=3.0, current_a=1.2)
@@ -337,39 +335,6 @@ def test_a_fallback_or_feedback_without_calibration_or_probe_is_refused():
         RuntimeConfig(feedback="resistance").validate()
 
 
-# ----------------------------------------------------------------------------- slow: closed loop
-def _track(cal, mode: str, proto: str, feedback: str, seed: int = 5) -> tuple[float, float]:
-    from smabench.control.factory import ControllerSettings
-
-    s = RunSettings(load_kg=2.0, protocol=ProtocolSettings(name=proto, cycles=2, period_s=20.0,
-                    lead_in_s=8.0), controller=ControllerSettings(mode=mode),
-                    probe_current_a=PROBE_A, feedback=feedback)  # fmt: skip
-    cfg = s.runtime_config()
-    _, rows = offline(s.build_controller(), seed=seed, max_duration_s=48.0,
-                      probe_current_a=PROBE_A, selfsense=cal, feedback=feedback)  # fmt: skip
-    t, x = col(rows, "t_s"), col(rows, "position_mm")
-    sp, est = col(rows, "setpoint_mm"), col(rows, "position_est_mm")
-    m = t > 13.0  # after the lead-in and the first few seconds of the reference
-    assert cfg.feedback == feedback
-    return (float(np.sqrt(np.nanmean((x[m] - sp[m]) ** 2))),
-            float(np.sqrt(np.nanmean((est[m] - x[m]) ** 2))))  # fmt: skip
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize(("mode", "proto"), [("pid", "sine"), ("ffpid", "step")])
-def test_feedback_resistance_tracks_a_reference_on_the_estimate(cal, mode, proto):
-    """The loop closed on the estimate follows the reference; its error against the laser is
-    reported beside the same session on the laser (the figures in the report come from here)."""
-    laser, est_laser = _track(cal, mode, proto, "laser")
-    res, est_res = _track(cal, mode, proto, "resistance")
-    print(
-        f"\n{mode} {proto}: tracking error against the laser {laser:.3f} mm RMS on laser "
-        f"feedback, {res:.3f} mm on resistance feedback (estimate − laser {est_laser:.3f} / "
-        f"{est_res:.3f} mm; stroke {cal.stroke_mm:.2f} mm)"
-    )
-    assert res < 0.5 * cal.stroke_mm  # closed on the estimate, it stays within the stroke
-
-
 # ----------------------------------------------------------------------------- slow: mock bench
 MOCK_SPEED = "2"
 RATE_HZ = "100"
@@ -402,6 +367,7 @@ def mock_cal(tmp_path_factory):
     return out, s, cal_path
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_mock_resistivity_run_measures_r_while_the_wire_cools(mock_cal):
     _, s, _ = mock_cal
@@ -421,6 +387,7 @@ def test_mock_resistivity_run_measures_r_while_the_wire_cools(mock_cal):
     assert 0.45 < r_cool.min() < r_cool.max() < 0.55 and np.ptp(r_cool) > 0.02
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_mock_run_with_selfsense_records_the_estimate_within_a_few_percent(mock_cal):
     out, _, cal_path = mock_cal
@@ -440,6 +407,7 @@ def test_mock_run_with_selfsense_records_the_estimate_within_a_few_percent(mock_
     assert pct < 6.0
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_mock_fallback_when_the_sensor_stops_answering(mock_cal, caplog):
     """The mock's sensor answers nothing for 1.5 s (wall) mid-session: the session goes on on
@@ -504,6 +472,7 @@ def test_mock_fallback_when_the_sensor_stops_answering(mock_cal, caplog):
     assert sum("displacement sensor back after" in m for m in said) == 1, said
 
 
+@pytest.mark.realtime_bench  # a mock bench: see tests/conftest.py
 @pytest.mark.slow
 def test_mock_run_closes_the_loop_on_the_estimate(mock_cal):
     """`smabench run --mock … --controller pid --feedback resistance`: every row controlled on

@@ -167,6 +167,21 @@ def test_killed_mock_ends_session_within_half_a_second(tmp_path):
     assert len(s) == result.samples >= 50
 
 
+def test_a_killed_mock_leaves_nothing_in_the_temporary_folder(tmp_path, monkeypatch):
+    """SIGKILL gives the mock no clean-up (the faults tests pull benches this way): what it made
+    in the temporary folder, the RTU pty pair's links and its copy of the firmware's core, goes
+    without it. socat, which ends with its parent, removes its links; a folder around them
+    stayed behind (356 ``smabench-mock-*`` folders in /tmp here)."""
+    monkeypatch.setenv("TMPDIR", str(tmp_path))
+    with MockProcess(["--load-kg", "2"]) as mock:
+        assert str(tmp_path) in (mock.ports.sensor_rtu or ""), mock.ports
+        mock.kill()
+    deadline = time.monotonic() + 10.0
+    while list(tmp_path.iterdir()) and time.monotonic() < deadline:
+        time.sleep(0.05)  # socat ends on its parent's death: polling that, not a fixed wait
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_modbus_timeout_burst_is_flagged_and_run_continues(tmp_path):
     """Late Modbus answers (the mock delays 8 responses by 80 ms, past the 50 ms request
     timeout) come back as flagged rows with no position; the session goes on. The exact count

@@ -23,6 +23,7 @@ import logging
 import os
 import queue
 import re
+import secrets
 import shutil
 import signal
 import subprocess
@@ -307,7 +308,7 @@ class MockBench:
         self.emulated: EmulatedDriver | None = None
         self.server: SensorServer | None = None
         self._socat: subprocess.Popen | None = None
-        self._tmp: tempfile.TemporaryDirectory | None = None
+        self._links: tuple[str, ...] = ()  # the RTU pty pair's links (socat's)
         self.ports: MockPorts | None = None
 
     def _couple(self, t_ms: float, dt_s: float, fw: MockFirmware) -> Electrical:
@@ -351,9 +352,12 @@ class MockBench:
             if self.rtu:
                 log.warning("socat not installed: no Modbus RTU port (TCP only)")
             return None
-        self._tmp = tempfile.TemporaryDirectory(prefix="smabench-mock-")
-        server_end = os.path.join(self._tmp.name, "sensor-server")
-        client_end = os.path.join(self._tmp.name, "sensor")
+        # the pair's links straight in the temporary folder, under a name no one else picks:
+        # socat removes them when it ends, and it ends with this process (die_with_parent), even
+        # when this process is killed; a private folder around them stayed behind after a SIGKILL
+        stem = os.path.join(tempfile.gettempdir(), f"smabench-mock-{secrets.token_hex(8)}")
+        server_end, client_end = f"{stem}-sensor-server", f"{stem}-sensor"
+        self._links = (server_end, client_end)
         self._socat = subprocess.Popen(
             ["socat", f"pty,raw,echo=0,link={server_end}", f"pty,raw,echo=0,link={client_end}"],
             stdout=subprocess.DEVNULL,
@@ -421,9 +425,10 @@ class MockBench:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 self._socat.wait(2.0)
             self._socat = None
-        if self._tmp is not None:
-            self._tmp.cleanup()
-            self._tmp = None
+        for link in self._links:  # socat removed them when it ended; if it could not, here
+            with contextlib.suppress(OSError):
+                os.unlink(link)
+        self._links = ()
         self.link.close()
 
     def __enter__(self) -> MockBench:

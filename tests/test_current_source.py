@@ -849,6 +849,12 @@ def test_a_flood_of_setpoints_does_not_starve_the_receiver(cs):
 
 
 # ------------------------------------------------------------------ the core behind the stand-ins
+def _python(probe: str, **env: str) -> subprocess.CompletedProcess:
+    """``probe`` in a fresh interpreter with ``env`` added to this one's environment."""
+    return subprocess.run([sys.executable, "-c", probe], env={**os.environ, **env},
+                          capture_output=True, text=True)  # fmt: skip
+
+
 @pytest.mark.slow  # compiles the core (a few seconds)
 def test_the_stand_ins_build_the_core_from_its_sources_when_no_build_exists(tmp_path):
     """What a fresh clone or a ``pip install .`` does on first use: the C sources compiled with
@@ -863,8 +869,7 @@ def test_the_stand_ins_build_the_core_from_its_sources_when_no_build_exists(tmp_
         "ack = p.decode_frame(MockFirmware().receive(p.encode_frame(5, *p.identify())))\n"
         "print(p.Ack.from_payload(ack.payload))\n"
     )
-    env = {**os.environ, "SMABENCH_CORELIB": str(out)}
-    done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+    done = _python(probe, SMABENCH_CORELIB=str(out))
     assert done.returncode == 0, done.stderr
     assert "status=0" in done.stdout and "SMA-CD328-MOCK" in done.stdout, done.stdout
 
@@ -890,8 +895,7 @@ def test_a_killed_process_leaves_no_copy_of_the_core_behind(tmp_path):
         "a, b = MockFirmware(0.0), MockFirmware(0.0)\n"
         "os.kill(os.getpid(), signal.SIGKILL)\n"
     )
-    env = {**os.environ, "TMPDIR": str(tmp_path)}
-    done = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+    done = _python(probe, TMPDIR=str(tmp_path))
     assert done.returncode == -9, done.stderr
     assert list(tmp_path.iterdir()) == []
 

@@ -74,14 +74,8 @@ def _pct(cal, session):
 
 @pytest.fixture(scope="module")
 def plants():
-    """The plant runs (one per profile and load), shared by both noise levels."""
-    return {
-        "cal": _plant(MAJOR * 6, seed=1),
-        "major": _plant(MAJOR * 3, seed=2),
-        "partial": _plant(PARTIAL, seed=3),
-        "light": _plant(MAJOR * 3, load_kg=0.5 * LOAD_KG, seed=4),
-        "heavy": _plant(MAJOR * 3, load_kg=1.5 * LOAD_KG, seed=5),
-    }
+    """The benchmark's plant runs (one per profile and load), shared by both noise levels."""
+    return {name: (r.t_s, r.current_a, r.cycle, r.trace) for name, r in sb.plant_runs().items()}
 
 
 @pytest.fixture(scope="module", params=[1.0, 3.0], ids=["chain-noise", "3x-noise"])

@@ -354,12 +354,12 @@ def test_bench_selfsense_prints_every_figure_against_its_target(bench_run):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="open (issue 26): PID on the estimate tracks the control "
-                   "table's sines 2-4× worse than on the laser (target 1.5×) and holds a "
-                   "position within 43 % of stroke with the laser gone 60 s (target 5 %): under "
-                   "the PID's varying current the firmware withholds the wire voltage (no R in "
-                   "94 % of the rows of a hold on the laser: a voltage goes out only with a "
-                   "current within 3 % + 10 mA of the one it was measured at), the estimate "
-                   "freezes and the loop closed on it cycles between the probe and 2 A")
+                   "table's sines 2.8× worse than on the laser (target 1.5×) and holds a "
+                   "position within 39 % of stroke with the laser gone 60 s (target 5 %): R is "
+                   "now in every row, but the map reads the resistivity's temperature "
+                   "coefficient as motion (a hold on the laser: R -0.6 % in 10 s as the current "
+                   "settles, the estimate walks 13 % of the stroke, the heating branch's one-way "
+                   "rule keeps it) and the loop closed on it swings between the probe and 2 A")
 def test_bench_selfsense_closed_loop_targets(bench_run):
     figs = bench_run[2]["noise"]["1x"]
     assert figs["met"]["tracking_ratio"] and figs["met"]["fallback_hold_pct"], figs

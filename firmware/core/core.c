@@ -41,6 +41,7 @@
 #define XADC_PERIOD_MS 2u  /* ADS1115 at 860 SPS: a conversion takes <= 1.3 ms */
 #define XADC_AVERAGE 4u    /* conversions averaged per published value */
 #define XADC_FAULT_AFTER 3u
+#define WIRE_R_MIN_MA 20u  /* a wire window's mean current below this gives no resistance */
 #define SLOW_PERIOD_MS 100u /* NTC, thermocouple (MAX31855 converts in <= 100 ms) */
 #define NTC_T_MIN_C (-40.0f) /* NTC rated range: outside it the reading is implausible */
 #define NTC_T_MAX_C 125.0f
@@ -67,6 +68,12 @@ static int32_t xadc_sum;
 /* fast-path current over the running window (mA) and the mean it had over each channel's last
  * published window; 0xFFFF: that window saw the current change (a step), no R from it */
 static uint16_t xadc_i_min, xadc_i_max, xadc_i_at[2];
+/* the wire channel's window paired conversion by conversion: the fast-path current over each
+ * conversion (its first ms, xadc_conv_ma, and the next), summed over the window; the window's
+ * V / I in mOhm (0: unknown) */
+static uint16_t xadc_conv_ma;
+static uint32_t xadc_isum;
+static float wire_mohm;
 static uint16_t xadc_timer;
 static uint16_t slow_timer;
 /* heat model, precomputed from s.heat */
@@ -579,11 +586,16 @@ static void xadc_publish(int32_t mean_code)
         span <= (uint16_t)(xadc_i_max / 32u + 10u)
             ? (uint16_t)(((uint32_t)xadc_i_min + xadc_i_max) / 2u) : 0xFFFFu;
     if (xadc_channel == HAL_XADC_WIRE) {
+        uint32_t i_ma = (xadc_isum + XADC_AVERAGE / 2u) / XADC_AVERAGE;
         float uv = ((float)mean_code * ((float)ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0f) -
                     (float)s.cal.voltage_offset_uv) *
                    ((float)s.cal.voltage_gain / 32768.0f);
         float dmv = uv * 0.01f;
         s.voltage_dmv = dmv <= 0.0f ? 0u : dmv >= 65534.0f ? 65534u : (uint16_t)(dmv + 0.5f);
+        /* each conversion with the current it saw: V/I holds while the current moves */
+        wire_mohm = i_ma >= WIRE_R_MIN_MA
+                        ? (dmv <= 0.0f ? 0.0f : dmv * 100.0f * (float)XADC_AVERAGE / (float)xadc_isum)
+                        : 0.0f;
     } else {
         float na = (float)mean_code * (float)ELEC_ADS1115_SHUNT_NA_PER_LSB *
                    ((float)s.cal.current_gain / 32768.0f);
@@ -602,7 +614,10 @@ static void xadc_publish(int32_t mean_code)
 /* ADS1115 state machine: every 2 ms read the pending conversion and start the other channel. */
 static void xadc_tick(void)
 {
-    if (++xadc_timer < XADC_PERIOD_MS) {
+    if (++xadc_timer == 1u) { /* the current over the pending conversion's first ms (of 1.16) */
+        xadc_conv_ma = s.current_ma;
+    }
+    if (xadc_timer < XADC_PERIOD_MS) {
         return;
     }
     xadc_timer = 0;
@@ -611,6 +626,8 @@ static void xadc_tick(void)
         int16_t code;
         if (hal_xadc_read(&code) == 0) {
             xadc_sum += code;
+            /* 860 SPS: 1.16 ms of conversion, the first ms and 0.16 of the second */
+            xadc_isum += ((uint32_t)xadc_conv_ma * 7u + s.current_ma + 4u) / 8u;
             if (xadc_n == 0u || s.current_ma < xadc_i_min) {
                 xadc_i_min = s.current_ma;
             }
@@ -620,6 +637,7 @@ static void xadc_tick(void)
             if (++xadc_n >= XADC_AVERAGE) {
                 xadc_publish(xadc_sum / (int32_t)XADC_AVERAGE);
                 xadc_sum = 0;
+                xadc_isum = 0;
                 xadc_n = 0;
                 xadc_channel ^= 1u;
             }
@@ -637,7 +655,9 @@ static void xadc_tick(void)
     } else if (++xadc_fails >= XADC_FAULT_AFTER) {
         xadc_fails = XADC_FAULT_AFTER;
         xadc_sum = 0;
+        xadc_isum = 0;
         xadc_n = 0;
+        wire_mohm = 0.0f;
         s.voltage_dmv = U16_NONE;
         s.precise_dma = U16_NONE;
         measured_r_ohm = 0.0f;
@@ -803,13 +823,22 @@ static uint16_t control_step(uint16_t sp_ma)
     return out > (int32_t)DUTY_MAX ? DUTY_MAX : (uint16_t)out;
 }
 
-/* The wire voltage goes out only with a current it was measured at: its window's fast-path
- * current within 3 % + 10 mA of the current in the same frame; else (the 8 ms after a step, or
- * a window that saw the current move) "not available", never V at one current over I at another. */
+/* The wire voltage at the frame's current: the wire's resistance over the last voltage window
+ * (each conversion paired with the current it saw, so it holds while the current moves) times
+ * the frame's current. A window below WIRE_R_MIN_MA (off, an open wire) gives no resistance: its
+ * voltage goes out only with a frame current within 3 % + 10 mA of the window's, else "not
+ * available", never V at one current over I at another. */
 static uint16_t paired_voltage_dmv(void)
 {
     uint16_t at = xadc_i_at[HAL_XADC_WIRE], now = s.current_ma;
-    if (s.voltage_dmv == U16_NONE || at == 0xFFFFu) {
+    if (s.voltage_dmv == U16_NONE) {
+        return U16_NONE;
+    }
+    if (wire_mohm > 0.0f) {
+        float dmv = wire_mohm * (float)now * 0.01f; /* mOhm x mA = uV; 0.1 mV */
+        return dmv >= 65534.0f ? 65534u : (uint16_t)(dmv + 0.5f);
+    }
+    if (at == 0xFFFFu) {
         return U16_NONE;
     }
     uint16_t hi = at > now ? at : now, lo = at > now ? now : at;
@@ -883,6 +912,8 @@ void core_init(uint8_t was_watchdog_reset)
     xadc_channel = HAL_XADC_WIRE;
     xadc_pending = xadc_fails = xadc_n = 0;
     xadc_sum = 0;
+    xadc_isum = 0;
+    wire_mohm = 0.0f;
     xadc_i_at[0] = xadc_i_at[1] = 0xFFFFu;
     xadc_timer = 0;
     integ_q16 = 0;

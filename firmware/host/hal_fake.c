@@ -31,6 +31,11 @@ static double ntc_mv;
 static uint8_t estop_level, estop_latched;
 static uint8_t xadc_on, xadc_ch;
 static int16_t xadc_code;
+/* the ADS1115 converts over 1/860 s after its start (TI SBAS444, 860 SPS): the code is the mean
+ * of the input over that window, taken in the sink model's 50 us steps */
+#define XADC_CONV_US (1e6 / 860.0)
+static double xadc_left_us, xadc_acc;
+static int xadc_acc_n;
 static uint32_t tc_word;
 static uint8_t eeprom[1024];
 static uint32_t dither;
@@ -82,6 +87,8 @@ void fake_reset(void)
     xadc_on = 1;
     xadc_ch = 0;
     xadc_code = 0;
+    xadc_left_us = xadc_acc = 0.0;
+    xadc_acc_n = 0;
     tc_word = 0xFFFFFFFFu;
     dither = 12345u;
     avcc_mv = ADC_REF_MV;
@@ -162,6 +169,16 @@ static void model_step(double dt_us)
     i_meas_a += (i_a - i_meas_a) * (dt_us / ANTIALIAS_TAU_US);
 }
 
+/* The selected ADS1115 input now, in LSB (not rounded). */
+static double xadc_input_code(void)
+{
+    if (xadc_ch == HAL_XADC_WIRE) {
+        double v = (sink.open ? sink.supply_v : i_a * sink.wire_ohm) + sink.wire_offset_v;
+        return v * 1e6 / (ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0);
+    }
+    return i_a * 1e9 / ELEC_ADS1115_SHUNT_NA_PER_LSB;
+}
+
 void fake_advance_ms(uint32_t ms)
 {
     for (uint32_t k = 0; k < ms; k++) {
@@ -176,6 +193,11 @@ void fake_advance_ms(uint32_t ms)
         for (int j = 0; j < 20; j++) {
             model_step(SUB_US);
             t_us += SUB_US;
+            if (xadc_left_us > 0.0) {
+                xadc_acc += xadc_input_code();
+                xadc_acc_n++;
+                xadc_left_us -= SUB_US;
+            }
             /* conversions as the AVR HAL starts them: at every second PWM BOTTOM (synchronous),
              * or back to back in free-running mode */
             while (next_sample_us <= t_us) {
@@ -324,15 +346,9 @@ int8_t hal_xadc_start(uint8_t channel)
         return -1;
     }
     xadc_ch = channel;
-    double code;
-    if (channel == HAL_XADC_WIRE) {
-        double v = (sink.open ? sink.supply_v : i_a * sink.wire_ohm) + sink.wire_offset_v;
-        code = v * 1e6 / (ELEC_ADS1115_WIRE_UV_PER_LSB_Q8 / 256.0);
-    } else {
-        code = i_a * 1e9 / ELEC_ADS1115_SHUNT_NA_PER_LSB;
-    }
-    code = floor(code + noise() + 0.5);
-    xadc_code = (int16_t)(code > 32767.0 ? 32767.0 : code < -32768.0 ? -32768.0 : code);
+    xadc_left_us = XADC_CONV_US;
+    xadc_acc = 0.0;
+    xadc_acc_n = 0;
     return 0;
 }
 
@@ -341,6 +357,10 @@ int8_t hal_xadc_read(int16_t *code)
     if (!xadc_on) {
         return -1;
     }
+    /* read before the conversion ended: what it had so far (the whole window in the core's use) */
+    double c = xadc_acc_n > 0 ? xadc_acc / xadc_acc_n : xadc_input_code();
+    c = floor(c + noise() + 0.5);
+    xadc_code = (int16_t)(c > 32767.0 ? 32767.0 : c < -32768.0 ? -32768.0 : c);
     *code = xadc_code;
     return 0;
 }

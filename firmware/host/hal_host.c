@@ -87,14 +87,33 @@ uint8_t hal_uart_tx_free(void) { return (uint8_t)(HOST_TX_SIZE - tx_len); }
 void hal_pwm_set(uint16_t duty) { io.pwm_duty = duty; }
 void hal_output_enable(uint8_t on) { io.output_enabled = on ? 1u : 0u; }
 
+/* The ADS1115 converts over the 1.16 ms after its start (860 SPS). Python sets the inputs of
+ * each ms before the tick that ends it: a conversion takes 7/8 of the first ms after its start and
+ * 1/8 of the next, taken as those ticks come (the core reads the fast path first thing every
+ * tick) and at its read. */
+static uint8_t xadc_ch, xadc_ms_taken;
+static uint32_t xadc_start_ms;
+static int32_t xadc_acc; /* the code's eighths so far */
+
+static void xadc_convert(void)
+{
+    uint32_t ms = io.millis - xadc_start_ms;
+    if (xadc_ms_taken == 0u && ms >= 1u) {
+        xadc_acc = 7 * (int32_t)io.xadc_code[xadc_ch];
+        xadc_ms_taken = 1u;
+    } else if (xadc_ms_taken == 1u && ms >= 2u) {
+        xadc_acc += io.xadc_code[xadc_ch];
+        xadc_ms_taken = 2u;
+    }
+}
+
 uint16_t hal_adc_q4(uint8_t channel)
 {
+    xadc_convert();
     return channel < HAL_ADC_CHANNELS ? io.adc_q4[channel] : 0u;
 }
 
 uint8_t hal_estop_tripped(void) { return io.estop ? 1u : 0u; } /* Python sets the level per tick */
-
-static uint8_t xadc_ch;
 
 int8_t hal_xadc_start(uint8_t channel)
 {
@@ -102,6 +121,8 @@ int8_t hal_xadc_start(uint8_t channel)
         return -1;
     }
     xadc_ch = channel & 1u;
+    xadc_start_ms = io.millis;
+    xadc_ms_taken = 0u;
     return 0;
 }
 
@@ -110,7 +131,14 @@ int8_t hal_xadc_read(int16_t *code)
     if (!io.xadc_present) {
         return -1;
     }
-    *code = io.xadc_code[xadc_ch];
+    xadc_convert();
+    if (xadc_ms_taken == 0u) { /* read in the ms it started: the inputs now */
+        *code = io.xadc_code[xadc_ch];
+    } else if (xadc_ms_taken == 1u) { /* read before its end: the first ms */
+        *code = (int16_t)(xadc_acc / 7);
+    } else {
+        *code = (int16_t)((xadc_acc + (xadc_acc >= 0 ? 4 : -4)) / 8);
+    }
     return 0;
 }
 

@@ -132,8 +132,8 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         wire_model_c=40.0, thermocouple_c=nan, precise_current_a=0.0, supply_v=5.0,
         thermocouple_status=p.TcStatus.ABSENT,
     ).to_payload()  # fmt: skip
-    unpaired = p.Telemetry(
-        t_ms=300, current_a=0.5, voltage_v=nan, duty=0.2, ambient_c=22.0,
+    after_step = p.Telemetry(
+        t_ms=300, current_a=0.5, voltage_v=0.22, duty=0.2, ambient_c=22.0,
         flags=p.Flag.ENABLED, setpoint_a=0.5, crc_errors=0, frame_errors=0,
         wire_model_c=40.0, thermocouple_c=nan, precise_current_a=1.0, supply_v=5.0,
         thermocouple_status=p.TcStatus.ABSENT,
@@ -265,7 +265,7 @@ def valid_vectors() -> list[tuple[str, int, int, bytes]]:
         ),
         ("answer_telemetry_lease_expired", 40, M.TELEMETRY, lease_expired),
         ("answer_telemetry_enabled_after_lease", 41, M.TELEMETRY, reenabled),
-        ("answer_telemetry_voltage_unpaired", 42, M.TELEMETRY, unpaired),
+        ("answer_telemetry_voltage_after_step", 42, M.TELEMETRY, after_step),
         ("answer_longest_command_set_heat_model", 29, M.SET_HEAT_MODEL, heat.to_data()),
         # framing edge cases
         ("payload_zeros_8", 13, M.PING, bytes(8)),

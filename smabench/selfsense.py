@@ -21,6 +21,7 @@ from smabench.physics.selfsense import (
     FILTER_TAU_S,
     FOLDS_MAX,
     HEATING,
+    MAPS,
     MIN_BRANCH_ROWS,
     MIN_CURRENT_A,
     MIN_ROWS,
@@ -33,6 +34,7 @@ from smabench.physics.selfsense import (
     SelfSenseEstimator,
     branch_of,
     fit_branch_map,
+    fit_thermal_map,
     load_calibration,
     resistance_from,
 )
@@ -45,6 +47,7 @@ __all__ = [  # the maps and the estimator are smabench.physics.selfsense's, re-e
     "FILTER_TAU_S",
     "FOLDS_MAX",
     "HEATING",
+    "MAPS",
     "MIN_BRANCH_ROWS",
     "MIN_CURRENT_A",
     "MIN_ROWS",
@@ -81,6 +84,8 @@ class SessionArrays:
     source: str = ""
     load_kg: float | None = None
     wire: dict[str, Any] | None = None
+    temperature_c: np.ndarray | None = None
+    """The bench's heat-balance temperature (``temperature_est_C``), °C; None when not recorded."""
 
 
 def session_arrays(session: Any, need_position: bool = True) -> SessionArrays:
@@ -108,10 +113,12 @@ def session_arrays(session: Any, need_position: bool = True) -> SessionArrays:
     cyc = (np.zeros(n, dtype=np.int64) if cycle is None
            else np.nan_to_num(np.asarray(cycle, dtype=float), nan=-1).astype(np.int64))  # fmt: skip
     meta = session.meta
+    temp = d.get("temperature_est_C")
     return SessionArrays(
         np.asarray(d["t_s"], dtype=float), np.asarray(d["current_A"], dtype=float),
         np.asarray(d["voltage_V"], dtype=float), pos, cyc, name,
         None if meta.get("load_kg") is None else float(meta["load_kg"]), meta.get("wire"),
+        None if temp is None else np.asarray(temp, dtype=float),
     )  # fmt: skip
 
 
@@ -165,6 +172,7 @@ def calibrate(
     fit: str = "poly",
     degree: int = POLY_DEGREE,
     reversal: bool = True,
+    map: str = "branches",
 ) -> SelfSenseCalibration:
     """Learn the map from sessions recorded with the laser (paths, loaded sessions or
     :class:`SessionArrays`). Refuses (``SelfSenseError``) sessions without voltage/current,
@@ -172,6 +180,8 @@ def calibrate(
     transformation."""
     if not sessions:
         raise SelfSenseError("no sessions to calibrate from")
+    if map not in MAPS:
+        raise SelfSenseError(f"map {map!r}: one of {', '.join(MAPS)}")
     arrays = [s if isinstance(s, SessionArrays) else session_arrays(s) for s in sessions]
     if min_current_a <= 0 or probe_level_a <= min_current_a:
         raise SelfSenseError("need 0 < min_current_a < probe_level_a")
@@ -253,7 +263,19 @@ def calibrate(
         return out[0], out[1]
 
     heating, cooling = maps(None)
-    base = replace(params, heating=heating, cooling=cooling)
+    thermal = None
+    if all(s.temperature_c is not None for s in arrays):  # recorded by the bench
+        temps = np.concatenate([s.temperature_c[ok] for s, ok in zip(arrays, usable, strict=True)])
+        if int(np.isfinite(temps).sum()) >= MIN_ROWS:
+            thermal = fit_thermal_map(
+                np.concatenate([rf[ok] for (rf, _), ok in zip(filt, usable, strict=True)]),
+                temps,
+                x_all,
+            )
+    if map == "thermal" and thermal is None:
+        raise SelfSenseError("the thermal map needs the bench's temperature_est_C in every "
+                             f"session (at least {MIN_ROWS} rows with it)")  # fmt: skip
+    base = replace(params, heating=heating, cooling=cooling, thermal=thermal, map=map)
     rms, heldout = _heldout_rms(arrays, filt, usable, data, base, maps)
     same_load = {s.load_kg for s in arrays}
     return replace(
@@ -345,7 +367,9 @@ class SessionEstimate:
 def estimate_session(calibration: SelfSenseCalibration, session: Any) -> SessionEstimate:
     """Run the estimator over a session (path, loaded session or :class:`SessionArrays`)."""
     s = session if isinstance(session, SessionArrays) else session_arrays(session)
-    est = SelfSenseEstimator(calibration).estimate(s.t_s, s.current_a, s.voltage_v)
+    est = SelfSenseEstimator(calibration).estimate(
+        s.t_s, s.current_a, s.voltage_v, s.temperature_c
+    )  # the bench's, if recorded
     both = np.isfinite(est) & np.isfinite(s.position_mm)
     n = int(both.sum())
     rms = float(np.sqrt(np.mean((est[both] - s.position_mm[both]) ** 2))) if n else math.nan
@@ -362,6 +386,7 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         probe_level_a=args.probe_level_a,
         filter_tau_s=args.filter_tau_s,
         filter_tau_cooling_s=args.filter_tau_cooling_s,
+        map=args.map,
     )
     atomic_write(args.out, cal.to_json())
     kind = "held out by cycle" if cal.heating.heldout else "in-sample (one cycle)"
@@ -371,6 +396,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         m = cal.branch(b)
         print(f"  {name}: {m.rms_mm:.4f} mm = {cal.percent_of_stroke(m.rms_mm):.2f} % of stroke "
               f"({m.rows} learning rows)")  # fmt: skip
+    if cal.thermal is not None:
+        th = cal.thermal
+        print(f"  thermal map: {th.rms_mm:.4f} mm = {cal.percent_of_stroke(th.rms_mm):.2f} % of "
+              f"stroke in-sample, temperature coefficient {th.tcr_per_k:.2e} /K")  # fmt: skip
+    print(f"estimator reads the {cal.map} map{'s' if cal.map == 'branches' else ''}")
     print(f"calibration written: {args.out}")
     return 0
 
@@ -430,6 +460,14 @@ def add_commands(sub: Any) -> None:
         type=float,
         default=FILTER_TAU_S,
         help=f"R filter time constant while heating, s ({FILTER_TAU_S:g})",
+    )
+    s.add_argument(
+        "--map",
+        choices=MAPS,
+        default="branches",
+        help="what the estimator reads: the branch maps on R (open-loop recordings) "
+        "or the thermal map, R at a reference temperature from the bench's heat "
+        "balance (control on the estimate; needs temperature_est_C)",
     )
     s.add_argument("--filter-tau-cooling-s", type=float, default=FILTER_TAU_COOLING_S,
                    help=f"... while cooling, s ({FILTER_TAU_COOLING_S:g})")  # fmt: skip

@@ -212,8 +212,8 @@ def closed_loop_calibration(noise_factor: float):
     arrays = ss.SessionArrays(_col(rows, "t_s"), _col(rows, "current_A"),
                               _col(rows, "voltage_V"), _col(rows, "position_mm"),
                               _col(rows, "cycle").astype(int), "offline cycles",
-                              LOAD_KG)  # fmt: skip
-    return ss.calibrate([arrays])
+                              LOAD_KG, temperature_c=_col(rows, "temperature_est_C"))  # fmt: skip
+    return ss.calibrate([arrays], map="thermal")  # control on it (MAPS: measured)
 
 
 def tracking(cal, noise_factor: float, ref: str, feedback: str) -> float:

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import dataclasses
 import io
 import json
+import math
 import re
 
 import numpy as np
@@ -217,6 +219,9 @@ def test_flagged_rows_are_not_learned_and_calibration_round_trips(bench):
     a = ss.SelfSenseEstimator(cal).estimate(s.t_s[:3000], s.current_a[:3000], s.voltage_v[:3000])
     b = ss.SelfSenseEstimator(back).estimate(s.t_s[:3000], s.current_a[:3000], s.voltage_v[:3000])
     np.testing.assert_array_equal(a, b)
+    assert d["map"] == "branches" and cal.thermal is None  # no heat-balance temperature here
+    with pytest.raises(ss.SelfSenseError, match="temperature_est_C"):
+        ss.calibrate([folders["cal"]], map="thermal")
 
 
 def test_update_and_estimate_are_identical(bench):
@@ -353,13 +358,73 @@ def test_bench_selfsense_prints_every_figure_against_its_target(bench_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="open (issue 26): PID on the estimate tracks the control "
-                   "table's sines 2.8× worse than on the laser (target 1.5×) and holds a "
-                   "position within 39 % of stroke with the laser gone 60 s (target 5 %): R is "
-                   "now in every row, but the map reads the resistivity's temperature "
-                   "coefficient as motion (a hold on the laser: R -0.6 % in 10 s as the current "
-                   "settles, the estimate walks 13 % of the stroke, the heating branch's one-way "
-                   "rule keeps it) and the loop closed on it swings between the probe and 2 A")
-def test_bench_selfsense_closed_loop_targets(bench_run):
+def test_bench_selfsense_fallback_holds_the_position(bench_run):
+    """The laser gone 60 s in a hold at mid-stroke: the wire stays within 5 % of the stroke on
+    the thermal map (the heat balance's temperature taken out of R, readings weighted by their
+    current); on the branch maps it walked 38 % (the resistivity's temperature read as motion)."""
     figs = bench_run[2]["noise"]["1x"]
-    assert figs["met"]["tracking_ratio"] and figs["met"]["fallback_hold_pct"], figs
+    assert figs["met"]["fallback_hold_pct"], figs
+    assert figs["fallback_hold_mm"] < 0.15 and figs["hold_on_laser_mm"] < 0.05, figs
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="open (issue 26): PID on the estimate tracks the control "
+                   "table's 20 s sine 1.69× worse than on the laser (target 1.5×; the 10 s sine "
+                   "1.17×): the thermal map's error follows the heat balance's temperature, "
+                   "whose dynamics are not the plant's (0.05-0.1 mm behind the wire after each "
+                   "current swing); the filter that weights the probe's readings trades it "
+                   "against the hold (THERMAL_FILTER_REF_A)")
+def test_bench_selfsense_tracking_target(bench_run):
+    figs = bench_run[2]["noise"]["1x"]
+    assert figs["met"]["tracking_ratio"], figs
+
+
+# --------------------------------------------------------------------------- the thermal map
+def test_thermal_map_recovers_the_temperature_coefficient_and_round_trips():
+    """R = (0.50 − 0.012·x)(1 + 4e-4·(T − 20)) with T uncorrelated to x: the fit finds 4e-4 /K
+    (on its 2.5e-5 grid) and x within 1 µm; the calibration file keeps the map, and a file
+    without one (written before it existed) still loads."""
+    from smabench.physics.selfsense import SelfSenseCalibration, ThermalMap, fit_thermal_map
+
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.0, 2.5, 2000)
+    t = rng.uniform(20.0, 90.0, 2000)
+    r = (0.50 - 0.012 * x) * (1.0 + 4e-4 * (t - 20.0))
+    m = fit_thermal_map(r, t, x)
+    assert m.tcr_per_k == pytest.approx(4e-4, abs=1e-9)
+    assert m.rms_mm < 1e-3
+    np.testing.assert_allclose(m(r, t), x, atol=1e-3)
+    assert m.at(float(r[7]), float(t[7])) == pytest.approx(x[7], abs=1e-3)
+    assert ThermalMap.from_dict(json.loads(json.dumps(m.to_dict()))) == m
+    with pytest.raises(ss.SelfSenseError, match="at least"):
+        fit_thermal_map(r[:50], t[:50], x[:50])
+    d = json.loads(json.dumps(SelfSenseCalibration(
+        ss.BranchMap("poly", 0.4, 0.5, 1, 1, coeffs=(0.0,)),
+        ss.BranchMap("poly", 0.4, 0.5, 1, 1, coeffs=(0.0,)), x_range_mm=(0.0, 2.5),
+        thermal=m).to_dict()))  # fmt: skip
+    assert SelfSenseCalibration.from_dict(d).thermal == m
+    del d["thermal"]
+    assert SelfSenseCalibration.from_dict(d).thermal is None
+
+
+def test_the_estimator_takes_the_thermal_map_only_with_a_temperature():
+    """A wire held still while its temperature falls 20 K: R falls by the temperature
+    coefficient alone. With the temperature the thermal map (the calibration's choice) holds
+    the position; the same calibration set to the branch maps reads them."""
+    from smabench.physics.selfsense import SelfSenseCalibration, SelfSenseEstimator, ThermalMap
+
+    x_true = 1.0
+    m = ThermalMap(4e-4, 0.5 - 0.012 * 1.25, 0.012, (1.25, -1.0), 0.0)  # x = 1.25 − u
+    branch = ss.BranchMap("poly", 0.46, 0.50, -1, -1, coeffs=(0.0,))
+    cal = SelfSenseCalibration(branch, branch, x_range_mm=(0.0, 2.5), thermal=m, map="thermal")
+    est = SelfSenseEstimator(cal)
+    x = math.nan
+    for k in range(400):
+        temp = 60.0 - 20.0 * k / 400
+        r = (0.5 - 0.012 * x_true) * (1.0 + 4e-4 * (temp - 20.0))
+        x = est.update(k * 0.005, 0.8, 0.8 * r, temp)
+    # R filtered (20 ms), the temperature not: R lags the falling temperature by 20 ms here
+    assert x == pytest.approx(x_true, abs=4e-3)
+    assert math.isnan(SelfSenseEstimator(cal).update(0.0, 0.01, 0.005, 40.0))  # below 20 mA
+    on_branches = SelfSenseEstimator(dataclasses.replace(cal, map="branches"))
+    assert on_branches.update(0.0, 0.8, 0.8 * 0.488, 40.0) == branch.at(branch.r_end_ohm)

@@ -254,14 +254,15 @@ class ControlTick:
             self.feedback == "resistance" or self.config.fallback == "resistance"
         )
 
-    def _estimate(self, t_s: float, current_a: float, voltage_v: float | None
-                  ) -> tuple[float, float, bool]:  # fmt: skip
-        """(resistance, Ω, of this row or NaN; position estimate, mm; whether it is valid)."""
+    def _estimate(self, t_s: float, current_a: float, voltage_v: float | None,
+                  temperature_c: float) -> tuple[float, float, bool]:  # fmt: skip
+        """(resistance, Ω, of this row or NaN; position estimate, mm; whether it is valid);
+        ``temperature_c``: the heat balance's wire temperature (the thermal map's)."""
         est = self.selfsense
         if est is None:
             return math.nan, math.nan, False
         v = math.nan if voltage_v is None else float(voltage_v)
-        x = est.update(t_s, current_a, v)
+        x = est.update(t_s, current_a, v, temperature_c)
         r = math.nan
         if math.isfinite(current_a) and current_a >= est.calibration.min_current_a and \
                 math.isfinite(v):  # fmt: skip
@@ -392,7 +393,8 @@ class ControlTick:
         temperature_c = self.estimator.update(
             dt_s, current_a if math.isfinite(current_a) else 0.0, voltage_v, ambient_c
         )
-        resistance_ohm, estimate_mm, estimate_ok = self._estimate(t_s, current_a, voltage_v)
+        resistance_ohm, estimate_mm, estimate_ok = self._estimate(t_s, current_a, voltage_v,
+                                                                  temperature_c)
         if lost_s > cfg.sensor_timeout_s:  # only here when the estimate may carry the control
             if not estimate_ok:
                 return self._end("aborted", f"displacement sensor lost for {lost_s:.2f} s, and "
@@ -523,7 +525,7 @@ class ControlTick:
             ambient_c,
         )  # fmt: skip
         resistance_ohm, estimate_mm, _ = self._estimate(clock_s * cfg.time_scale, current_a,
-                                                        voltage_v)  # fmt: skip
+                                                        voltage_v, temperature_c)  # fmt: skip
         row = dict.fromkeys(self.columns)
         row.update(
             t_s=clock_s * cfg.time_scale, current_set_A=0.0, current_A=current_a,

@@ -107,10 +107,110 @@ FOLDS_MAX = 10
 """Held-out RMS: cycles are held out in at most this many folds."""
 HEATING, COOLING = 0, 1
 BRANCH_NAMES = ("heating", "cooling")
+THERMAL_REF_C = 20.0
+"""Reference temperature of the thermal map's resistance, °C."""
+THERMAL_DEGREE = 2
+"""Degree of the thermal map's polynomial in the resistance at the reference temperature."""
+MAPS = ("branches", "thermal")
+"""What the estimator reads, chosen at calibration: the branch maps with the reversal rule on R
+alone, or the thermal map (R at a reference temperature from the bench's heat balance).
+Measured: the branch maps on open-loop cycles (a mock session's 2 cycles: 3.8 % of the stroke,
+the thermal map 6.8 %); the thermal map under control (`smabench bench selfsense`, 1× noise:
+a hold with the laser gone 60 s within 1.5 % of the stroke, the branch maps 38.6 %; the worse
+sine tracked 1.69× the laser's error, the branch maps 2.81×)."""
+THERMAL_FILTER_REF_A = 0.5
+"""With the thermal map, R's filter time constant is ``filter_tau_s`` × (this / I)² below this
+current, A: each reading weighted by its signal to noise. Measured (`smabench bench selfsense`,
+1× noise), reference 0.3 / 0.5 / 0.7 / 1.0 A: PID on the estimate tracks the worse sine 1.60 /
+1.69 / 1.75 / 1.98× the laser's error and holds with the laser gone within 8.2 / 1.5 / 0.5 / 0.6 %
+of the stroke (a fixed 0.02 s: 1.63×, 14 %: the PID swings between the probe and 2 A on the
+probe's 0.2 %-of-R voltage steps)."""
+TCR_GRID_PER_K = tuple(float(v) for v in np.linspace(0.0, 1.5e-3, 61))
+"""Temperature coefficients the thermal map tries, 1/K (NiTi's 1e-4 … 1e-3 and beyond)."""
 
 
 class SelfSenseError(ValueError):
     """Bad input to self-sensing (a session without voltage, too few rows with R …)."""
+
+
+# --------------------------------------------------------------------------- thermal map
+@dataclass(frozen=True)
+class ThermalMap:
+    """Position from the resistance and the wire's temperature: x = Σ c_k·u^k (mm) with
+    u = (R_c − r0)/r_scale and R_c = R / (1 + tcr·(T − ref_c)), the resistance at the
+    reference temperature. R is one function of (ξ, T, ε): the loop's hysteresis is in ξ(T),
+    not in R(ξ, T), so this map needs no branch rule; T comes from the bench's heat balance.
+    ``rms_mm``: its RMS error on the rows it was learnt from, mm."""
+
+    tcr_per_k: float
+    r0_ohm: float
+    r_scale_ohm: float
+    coeffs: tuple[float, ...]
+    rms_mm: float = math.nan
+    ref_c: float = THERMAL_REF_C
+
+    def compensated(self, r_ohm: float, temperature_c: float) -> float:
+        """The resistance at the reference temperature, Ω."""
+        return r_ohm / (1.0 + self.tcr_per_k * (temperature_c - self.ref_c))
+
+    def of_compensated(self, rc_ohm: float) -> float:
+        """Position for a resistance at the reference temperature, mm."""
+        u = (rc_ohm - self.r0_ohm) / self.r_scale_ohm
+        x = 0.0
+        for c in reversed(self.coeffs):
+            x = x * u + c
+        return x
+
+    def at(self, r_ohm: float, temperature_c: float) -> float:
+        """Position for one resistance (Ω) at one temperature (°C), mm."""
+        return self.of_compensated(self.compensated(r_ohm, temperature_c))
+
+    def __call__(self, r_ohm: np.ndarray, temperature_c: np.ndarray) -> np.ndarray:
+        rc = np.asarray(r_ohm, float) / (
+            1.0 + self.tcr_per_k * (np.asarray(temperature_c, float) - self.ref_c)
+        )
+        return np.polynomial.polynomial.polyval((rc - self.r0_ohm) / self.r_scale_ohm,
+                                                self.coeffs)  # fmt: skip
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["coeffs"] = list(self.coeffs)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ThermalMap:
+        return cls(float(d["tcr_per_k"]), float(d["r0_ohm"]), float(d["r_scale_ohm"]),
+                   tuple(float(c) for c in d["coeffs"]), float(d.get("rms_mm", math.nan)),
+                   float(d.get("ref_c", THERMAL_REF_C)))  # fmt: skip
+
+
+def fit_thermal_map(r_ohm: np.ndarray, temperature_c: np.ndarray, x_mm: np.ndarray,
+                    degree: int = THERMAL_DEGREE) -> ThermalMap:  # fmt: skip
+    """The thermal map of least RMS error over :data:`TCR_GRID_PER_K` (each a linear least
+    squares in the polynomial's coefficients)."""
+    r, t, x = (np.asarray(a, dtype=float) for a in (r_ohm, temperature_c, x_mm))
+    ok = np.isfinite(r) & np.isfinite(t) & np.isfinite(x)
+    r, t, x = r[ok], t[ok], x[ok]
+    if len(r) < MIN_ROWS:
+        raise SelfSenseError(f"{len(r)} rows with a resistance, a temperature and a position; "
+                             f"at least {MIN_ROWS} needed for the thermal map")  # fmt: skip
+    best: ThermalMap | None = None
+    for tcr in TCR_GRID_PER_K:
+        rc = r / (1.0 + tcr * (t - THERMAL_REF_C))
+        r0, rs = float(np.mean(rc)), float(np.std(rc)) or 1.0
+        u = (rc - r0) / rs
+        design = np.vander(u, degree + 1, increasing=True)
+        coef, *_ = np.linalg.lstsq(design, x, rcond=None)
+        rms = float(np.sqrt(np.mean((x - design @ coef) ** 2)))
+        if best is None or rms < best.rms_mm:
+            best = ThermalMap(tcr, r0, rs, tuple(float(c) for c in coef), rms)
+    assert best is not None
+    return best
+
+
+def a_rc(tau_s: float, dt_s: float) -> float:
+    """The gain of a first-order filter's step of ``dt_s`` (s) with time constant ``tau_s``."""
+    return 1.0 if tau_s <= 0 else -math.expm1(-max(dt_s, 0.0) / tau_s)
 
 
 # --------------------------------------------------------------------------- resistance
@@ -362,6 +462,8 @@ class SelfSenseCalibration:
     sessions: tuple[dict[str, Any], ...] = ()
     load_kg: float | None = None
     wire: dict[str, Any] | None = None
+    thermal: ThermalMap | None = None
+    map: str = "branches"
     schema_version: int = SCHEMA_VERSION
 
     @property
@@ -389,6 +491,9 @@ class SelfSenseCalibration:
         d["stroke_mm"] = self.stroke_mm
         d["rms_mm"] = {n: self.branch(b).rms_mm for b, n in enumerate(BRANCH_NAMES)}
         d["sessions"] = [dict(s) for s in self.sessions]
+        d["map"] = self.map
+        if self.thermal is not None:
+            d["thermal"] = self.thermal.to_dict()
         return d
 
     def to_json(self) -> str:
@@ -417,6 +522,8 @@ class SelfSenseCalibration:
                 sessions=tuple(d.get("sessions", ())),
                 load_kg=None if d.get("load_kg") is None else float(d["load_kg"]),
                 wire=d.get("wire"),
+                thermal=None if d.get("thermal") is None else ThermalMap.from_dict(d["thermal"]),
+                map=str(d.get("map", "branches")),
             )
         except (KeyError, TypeError) as exc:
             raise SelfSenseError(f"not a self-sense calibration ({exc!r})") from None
@@ -503,8 +610,12 @@ class SelfSenseEstimator:
         # the martensite fraction moves one way on a branch, so does the estimate
         return max(x, x_prev) if m.x_direction > 0 else min(x, x_prev)
 
-    def update(self, t_s: float, current_a: float, voltage_v: float) -> float:
-        """One sample (time, s; measured current, A; Kelvin wire voltage, V) → position, mm."""
+    def update(self, t_s: float, current_a: float, voltage_v: float,
+               temperature_c: float = math.nan) -> float:  # fmt: skip
+        """One sample (time, s; measured current, A; Kelvin wire voltage, V; the wire's
+        temperature from the heat balance, °C, NaN when not known) → position, mm. The thermal
+        map (no branch rule) when the calibration chose it (``map``) and there is a
+        temperature; else the branch maps."""
         cal = self.calibration
         i, v, t = float(current_a), float(voltage_v), float(t_s)
         if not (i >= cal.min_current_a) or not math.isfinite(v) or not math.isfinite(t):
@@ -512,6 +623,10 @@ class SelfSenseEstimator:
         r = v / i
         b = HEATING if i > cal.probe_level_a else COOLING
         tau = cal.filter_tau_s if b == HEATING else cal.filter_tau_cooling_s
+        thermal = cal.map == "thermal" and cal.thermal is not None and math.isfinite(temperature_c)
+        if thermal:
+            # a reading's variance grows as 1/I² (the voltage's noise and 0.1 mV steps are fixed)
+            tau = cal.filter_tau_s * max(1.0, (THERMAL_FILTER_REF_A / i) ** 2)
         if math.isnan(self._rf):  # the first R: a rested wire, at the cooling map's end
             rf = r
             m = self._maps[COOLING]
@@ -519,10 +634,17 @@ class SelfSenseEstimator:
             self._x = self._xr[COOLING] = m.at(m.r_end_ohm)
             self._anchor(COOLING, rf)
         else:
-            dt = t - self._t
-            a = 1.0 if tau <= 0 else -math.expm1(-max(dt, 0.0) / tau)
-            rf = self._rf + a * (r - self._rf)
+            rf = self._rf + a_rc(tau, t - self._t) * (r - self._rf)
         self._rf, self._t = rf, t
+        if thermal:
+            # the filtered R with the heat balance's temperature of this instant: filtering
+            # the compensated R instead (R and T of one instant together) held the position
+            # with the laser gone within 24 % of the stroke, not 1.5 % (the heat balance's
+            # temperature leads the wire's after a current swing)
+            lo, hi = cal.x_range_mm
+            margin = 0.1 * (hi - lo)  # the map's polynomial is not trusted far past its data
+            self._x = min(max(cal.thermal.at(rf, float(temperature_c)), lo - margin), hi + margin)
+            return self._x
         m = self._maps[b]
         if not cal.reversal:
             self._branch = b
@@ -536,15 +658,20 @@ class SelfSenseEstimator:
         self._x = self._follow(b, rf, x_prev)
         return self._x
 
-    def estimate(self, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray) -> np.ndarray:
-        """``update`` over arrays, in order, from the estimator's present state."""
+    def estimate(self, t_s: np.ndarray, current_a: np.ndarray, voltage_v: np.ndarray,
+                 temperature_c: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        """``update`` over arrays, in order, from the estimator's present state (``temperature_c``:
+        the heat balance's per row, as the bench records it, or None)."""
         t = np.asarray(t_s, dtype=float).tolist()
         i = np.asarray(current_a, dtype=float).tolist()
         v = np.asarray(voltage_v, dtype=float).tolist()
-        if not len(t) == len(i) == len(v):
-            raise SelfSenseError("t_s, current_a and voltage_v must be equally long")
+        temp = ([math.nan] * len(t) if temperature_c is None
+                else np.asarray(temperature_c, dtype=float).tolist())  # fmt: skip
+        if not len(t) == len(i) == len(v) == len(temp):
+            raise SelfSenseError("t_s, current_a, voltage_v and temperature_c must be equally long")
         up = self.update
-        return np.array([up(a, b, c) for a, b, c in zip(t, i, v, strict=True)], dtype=float)
+        return np.array([up(a, b, c, d) for a, b, c, d in zip(t, i, v, temp, strict=True)],
+                        dtype=float)  # fmt: skip
 
     def _set_maps(self, heating: BranchMap, cooling: BranchMap) -> None:
         """Swap the maps mid-stream (the held-out RMS: each cycle with maps that never saw it);

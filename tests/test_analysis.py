@@ -140,22 +140,6 @@ def test_flexinol_pair_is_stress_shift(tmp_path, capsys):
     assert (tmp_path / "rep" / "residuals.png").exists()
 
 
-@pytest.mark.slow
-@pytest.mark.parametrize("second", ["latent_heat=24000", "cycle_drift=0.0005"],
-                         ids=["stress+latent", "stress+drift"])  # fmt: skip
-def test_two_effects_are_both_named(tmp_path, second):
-    """Two effects hidden at once: both named in ``causes``, each with its incremental gain
-    over the causes before it; ``cause`` stays the first."""
-    from smabench.analysis.report import summary
-
-    doc = summary(run(tmp_path, ["stress_shift=7.5", second], [1.0, 3.0], seed=7))
-    named = [c["cause"] for c in doc["causes"]]
-    print(named, [round(c["incremental_gain"], 3) for c in doc["causes"]])
-    assert set(named) == {"stress_shift", second.split("=")[0]}, doc["reason"]
-    assert doc["cause"] == named[0]
-    assert all(c["incremental_gain"] >= 0.15 and c["p_value"] < 0.01 for c in doc["causes"])
-
-
 RAW = Path("/work/shared/data/flexinol-instron-raw")
 if not RAW.exists():
     RAW = REPO / "sessions" / "samples" / "flexinol-instron-raw"

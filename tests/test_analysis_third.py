@@ -92,12 +92,16 @@ def test_flat_resistance_rules_out_phase_resistance(tmp_path):
 @pytest.mark.parametrize(("second", "value"), [("latent_heat", 25e3), ("cycle_drift", 1e-3)],
                          ids=["stress+latent", "stress+drift"])  # fmt: skip
 def test_two_effects_are_both_named(tmp_path, second, value):
+    """Two effects hidden at once in the third team's sessions: both named in ``causes``, each
+    with its incremental gain and p over the causes before it; ``cause`` stays the first. (The
+    same claim on smabench's own plant was in test_analysis.py: it proved nothing this one does
+    not, on a simulator we did not write, for 50 s of CI.)"""
     doc = analyse(tmp_path, {"stress_shift": 7.0, second: value}, [90.0, 250.0], seed=620)
     named = [c["cause"] for c in doc["causes"]]
     print(named, [round(c["incremental_gain"], 3) for c in doc["causes"]], doc["flags"])
     assert set(named) == {"stress_shift", second}, doc["reason"]
     assert doc["cause"] == named[0]
-    assert all(c["incremental_gain"] >= 0.15 for c in doc["causes"])
+    assert all(c["incremental_gain"] >= 0.15 and c["p_value"] < 0.01 for c in doc["causes"])
 
 
 def test_no_effect_is_none_when_the_wires_rate_dependent_kinetics_explain_it(tmp_path):

@@ -384,7 +384,11 @@ class SimDisplacementSensor:
         self.clock = plant.clock
         self.reads = 0
         self._fail_left = 0.0
+        self._fail_until_s = -math.inf
         self._fail_flag = FLAG_TIMEOUT
+        self.timeout_s = 0.0
+        """How long a request that times out (``FLAG_TIMEOUT``) holds its caller, s: a real
+        Modbus client waits its timeout; 0: the failure is returned at once."""
 
     def read_or_flag(self) -> Sample:
         """One reading at the clock's time; a flagged NaN sample while a failure is injected
@@ -392,8 +396,11 @@ class SimDisplacementSensor:
         self.reads += 1
         position = self.plant.position_mm()
         t = self.clock.now()
-        if self._fail_left > 0:
-            self._fail_left -= 1
+        if self._fail_left > 0 or t < self._fail_until_s:
+            self._fail_left = max(self._fail_left - 1, 0)
+            if self._fail_flag == FLAG_TIMEOUT and self.timeout_s > 0:
+                self.clock.sleep(self.timeout_s)  # the request waited for its answer
+                t = self.clock.now()
             if self._fail_flag == FLAG_SENSOR_STATUS:
                 return Sample(position, t, flags=FLAG_SENSOR_STATUS, status=1)
             return Sample(math.nan, t, flags=self._fail_flag, error="injected failure")
@@ -403,8 +410,13 @@ class SimDisplacementSensor:
         """The next ``count`` readings fail with ``flag`` (inf: until :meth:`recover`)."""
         self._fail_left, self._fail_flag = count, flag
 
+    def fail_for(self, seconds: float, flag: int = FLAG_TIMEOUT) -> None:
+        """Every reading fails with ``flag`` for ``seconds`` of the clock from now."""
+        self._fail_until_s, self._fail_flag = self.clock.now() + seconds, flag
+
     def recover(self) -> None:
         self._fail_left = 0
+        self._fail_until_s = -math.inf
 
     def make_safe(self) -> bool:
         """Nothing to switch off on a passive sensor; never raises."""

@@ -161,6 +161,8 @@ def estimation_figures(runs: dict[str, PlantRun], noise_factor: float) -> dict[s
 LOOP_PERIOD_S = 0.005  # the bench's 200 Hz
 SINES = ("sine 20 s", "sine 10 s")
 """The control table's sines (:data:`smabench.control.reference.BENCHMARK_REFERENCES`)."""
+SENSOR_TIMEOUT_S = 0.05
+"""The Modbus request timeout a silent laser costs, s (``smabench run --sensor-timeout-s``)."""
 DROPOUT_AT_S, DROPOUT_S = 20.0, 60.0
 """The laser's dropout in the hold: from this time, this long (s)."""
 
@@ -168,8 +170,10 @@ DROPOUT_AT_S, DROPOUT_S = 20.0, 60.0
 def _bench(noise_factor: float, seed: int):
     from smabench.drivers.sim import SimBench
 
-    return SimBench(LOAD_KG, seed=seed, resistivity=FLEXINOL_RESISTIVITY,
-                    wire_noise_v=ADS1115_KELVIN_CHAIN.noise_rms_v * noise_factor)  # fmt: skip
+    bench = SimBench(LOAD_KG, seed=seed, resistivity=FLEXINOL_RESISTIVITY,
+                     wire_noise_v=ADS1115_KELVIN_CHAIN.noise_rms_v * noise_factor)  # fmt: skip
+    bench.sensor.timeout_s = SENSOR_TIMEOUT_S  # a silent laser's request waits, as on the bench
+    return bench
 
 
 def _session(command, noise_factor: float, seed: int, duration_s: float, at=None, **cfg):
@@ -248,9 +252,8 @@ def fallback_hold(cal, noise_factor: float) -> dict[str, float]:
     controller = build_controller(proto, ControllerSettings(mode="pid"), LOAD_KG, PAPER_WIRE,
                                   2.0)  # fmt: skip
     k0 = int(round(DROPOUT_AT_S / LOOP_PERIOD_S))
-    n = int(round(DROPOUT_S / LOOP_PERIOD_S))
     rows, truth = _session(controller, noise_factor, seed=31, duration_s=duration_s,
-                           at={k0: lambda b: b.sensor.fail(n)}, selfsense=cal,
+                           at={k0: lambda b: b.sensor.fail_for(DROPOUT_S)}, selfsense=cal,
                            fallback="resistance")  # fmt: skip
     t, sp = _col(rows, "t_s"), _col(rows, "setpoint_mm")
     gone = (t >= DROPOUT_AT_S) & (t < DROPOUT_AT_S + DROPOUT_S)
@@ -275,13 +278,162 @@ def closed_loop_figures(noise_factor: float) -> dict[str, Any]:
             "closed_loop_stroke_mm": cal.stroke_mm}  # fmt: skip
 
 
+# ------------------------------------------------------------------ closed loop, mock bench
+MOCK_SPEED = 5.0
+"""The mock bench's speed (device time per wall time), as the control table's mock runs."""
+MOCK_RATE_HZ = 400.0
+"""The loop's wall rate on the mock (12.5 ms of device time per tick at 5×)."""
+
+
+@dataclass
+class MockRun:
+    """One session on its own mock bench: the recorded columns, and the plant's true position
+    at each row (from the mock's trace, aligned on the first current above 0.5 A), mm."""
+
+    data: dict[str, np.ndarray]
+    truth_mm: np.ndarray
+    status: str
+    reason: str
+    reference: Any = None  # the controller's position reference (None: open loop)
+
+
+def _mock_run(noise_factor: float, seed: int, settings_kw: dict, name: str,
+              drop_at_s: float | None = None) -> MockRun:  # fmt: skip
+    """A session through ``smabench mock`` over its real transports (the Python firmware, whose
+    behaviour is the C core; the wire voltage with the chain's noise × ``noise_factor`` per 1 ms
+    step); ``drop_at_s``: the sensor stops answering for :data:`DROPOUT_S` (device time) once
+    the session's clock passes this."""
+    import tempfile
+    import threading
+    from pathlib import Path
+
+    from smabench.bench.headless import MockProcess, open_devices
+    from smabench.bench.session_run import RunSettings, run_session
+    from smabench.sessions import load_session
+
+    with tempfile.TemporaryDirectory(prefix="smabench-bench-selfsense-") as tmp:
+        trace = Path(tmp) / "trace.csv"
+        settings = RunSettings(load_kg=LOAD_KG, rate_hz=MOCK_RATE_HZ, out_dir=Path(tmp),
+                               session_id=name, time_scale=MOCK_SPEED,
+                               probe_current_a=PROBE_A, **settings_kw)  # fmt: skip
+        settings.validate()
+        controller = settings.build_controller() if settings.controller is not None else None
+        noise_v = ADS1115_KELVIN_CHAIN.noise_rms_v * noise_factor
+        mock_args = ["--load-kg", f"{LOAD_KG:g}", "--speed", f"{MOCK_SPEED:g}", "--resistivity",
+                     "flexinol", "--wire-noise-v", f"{noise_v:.9g}", "--seed", str(seed),
+                     "--trace", str(trace)]  # fmt: skip
+        due = threading.Event()
+
+        def on_sample(row: dict) -> None:
+            if drop_at_s is not None and not due.is_set() and row["t_s"] >= drop_at_s:
+                due.set()
+
+        with MockProcess(mock_args) as mock:
+            source, sensor = open_devices(mock.ports.driver, mock.ports.sensor_tcp, settings)
+            done = threading.Event()
+
+            def drop() -> None:  # the mock's control channel, off the loop's thread
+                while not done.is_set():
+                    if due.wait(0.05):
+                        mock.send(f"sensor-drop {DROPOUT_S / MOCK_SPEED:g}")
+                        return
+
+            dropper = threading.Thread(target=drop, name="selfsense-drop", daemon=True)
+            dropper.start()
+            try:
+                folder, result = run_session(settings, source, sensor, on_sample=on_sample,
+                                             command=controller)  # fmt: skip
+            finally:
+                done.set()
+                source.close()
+                sensor.close()
+        data = load_session(folder).data
+        tr = np.loadtxt(trace, delimiter=",", skiprows=1, ndmin=2)
+    cur = np.nan_to_num(np.asarray(data["current_A"], dtype=float), nan=0.0)
+    k_row, k_tr = int(np.argmax(cur > 0.5)), int(np.argmax(tr[:, 1] > 0.5))
+    offset_s = tr[k_tr, 0] - float(data["t_s"][k_row])
+    truth = np.interp(np.asarray(data["t_s"], dtype=float) + offset_s, tr[:, 0], tr[:, 3])
+    return MockRun(data, truth, result.status, result.reason,
+                   None if controller is None else controller.reference)  # fmt: skip
+
+
+def mock_closed_loop_figures(noise_factor: float) -> dict[str, Any]:
+    """The closed-loop figures of :func:`closed_loop_figures` on the mock bench: the map learnt
+    from four cycles recorded there (the thermal map), PID on the laser and on the estimate on
+    the control table's sines, and the hold with the mock's sensor silent for 60 s."""
+    import tempfile
+    from pathlib import Path
+
+    from smabench import selfsense as ss
+    from smabench.bench.control_bench import Case, figures, protocol_settings
+    from smabench.control import ControllerSettings
+    from smabench.control.reference import BENCHMARK_REFERENCES
+    from smabench.protocols import ProtocolSettings
+
+    cycles = ProtocolSettings(name="cycles", cycles=4, heat_s=3.0, current_a=1.2)
+    run = _mock_run(noise_factor, 11, {"protocol": cycles}, "calibration")
+    d = run.data
+    arrays = ss.SessionArrays(
+        np.asarray(d["t_s"], float), np.asarray(d["current_A"], float),
+        np.asarray(d["voltage_V"], float), np.asarray(d["position_mm"], float),
+        np.nan_to_num(np.asarray(d["cycle"], float), nan=-1).astype(int), "mock cycles",
+        LOAD_KG, temperature_c=np.asarray(d["temperature_est_C"], float),
+    )  # fmt: skip
+    cal = ss.calibrate([arrays], map="thermal")
+    with tempfile.TemporaryDirectory(prefix="smabench-bench-selfsense-cal-") as tmp:
+        cal_path = Path(tmp) / "cal.json"
+        cal_path.write_text(cal.to_json(), encoding="utf-8")
+        per_sine = {}
+        for ref in SINES:
+            case = Case(ref, *BENCHMARK_REFERENCES[ref], LOAD_KG, "pid")
+            rms = {}
+            for feedback in ("laser", "resistance"):
+                kw = {"protocol": protocol_settings(case),
+                      "controller": ControllerSettings(mode="pid"), "selfsense": str(cal_path),
+                      "feedback": feedback}  # fmt: skip
+                r = _mock_run(noise_factor, 21, kw, f"{ref}-{feedback}".replace(" ", "-"))
+                if r.status != "completed":
+                    raise RuntimeError(f"mock session {ref} on {feedback} ended {r.status}: "
+                                       f"{r.reason}")  # fmt: skip
+                rms[feedback] = figures(r.data, r.reference, cal.stroke_mm)["rms_mm"]
+            per_sine[ref] = {"laser_mm": rms["laser"], "resistance_mm": rms["resistance"],
+                             "ratio": rms["resistance"] / rms["laser"]}  # fmt: skip
+        duration_s = DROPOUT_AT_S + DROPOUT_S + 10.0
+        hold = ProtocolSettings(name="step", cycles=1, period_s=2.5 * duration_s,
+                                amplitude_mm=0.4, lead_in_s=0.0)  # fmt: skip
+        kw = {"protocol": hold, "controller": ControllerSettings(mode="pid"),
+              "selfsense": str(cal_path), "fallback": "resistance",
+              "max_duration_s": duration_s / MOCK_SPEED}  # fmt: skip  (host clock)
+        r = _mock_run(noise_factor, 31, kw, "hold", drop_at_s=DROPOUT_AT_S)
+    if r.status != "completed" and "maximum duration" not in r.reason:
+        raise RuntimeError(f"mock hold session ended {r.status}: {r.reason}")
+    t = np.asarray(r.data["t_s"], float)
+    sp = np.asarray(r.data["setpoint_mm"], float)
+    flags = np.nan_to_num(np.asarray(r.data["flags"], float)).astype(np.int64)
+    from smabench.sessions import FLAG_FEEDBACK_RESISTANCE
+
+    gone = (flags & FLAG_FEEDBACK_RESISTANCE) != 0
+    before = (t >= DROPOUT_AT_S - 10.0) & (t < DROPOUT_AT_S)
+    err = np.abs(r.truth_mm - sp)
+    gone_mm = float(np.max(err[gone])) if gone.any() else math.nan
+    return {"tracking_ratio": max(v["ratio"] for v in per_sine.values()),
+            "tracking": per_sine, "fallback_hold_pct": cal.percent_of_stroke(gone_mm),
+            "fallback_hold_mm": gone_mm, "hold_on_laser_mm": float(np.max(err[before])),
+            "fallback_rows": int(gone.sum()), "fallback_s": float(np.ptp(t[gone])) if gone.any()
+            else 0.0, "closed_loop_stroke_mm": cal.stroke_mm}  # fmt: skip
+
+
 # ------------------------------------------------------------------ the benchmark
-def bench_selfsense(noise_factors: tuple[float, ...] = NOISE_FACTORS) -> dict[str, Any]:
-    """Every figure at each noise factor: ``{"noise": {factor: figures}, "targets": …}``."""
+def bench_selfsense(noise_factors: tuple[float, ...] = NOISE_FACTORS,
+                    mock: bool = False) -> dict[str, Any]:  # fmt: skip
+    """Every figure at each noise factor: ``{"noise": {factor: figures}, "targets": …}``;
+    ``mock``: the closed-loop figures on the mock bench over its real transports."""
     runs = plant_runs()
-    out: dict[str, Any] = {"targets": dict(TARGETS), "noise": {}}
+    out: dict[str, Any] = {"targets": dict(TARGETS), "noise": {},
+                           "closed_loop": "mock" if mock else "offline"}  # fmt: skip
     for f in noise_factors:
-        figs = {**estimation_figures(runs, f), **closed_loop_figures(f)}
+        loop = mock_closed_loop_figures(f) if mock else closed_loop_figures(f)
+        figs = {**estimation_figures(runs, f), **loop}
         figs["met"] = {k: bool(figs[k] <= v) for k, v in TARGETS.items()}
         out["noise"][f"{f:g}x"] = figs
     return out
@@ -321,9 +473,11 @@ def cmd_bench_selfsense(args: argparse.Namespace) -> int:
     factors = tuple(args.noise) if args.noise else NOISE_FACTORS
     if not all(0.0 <= f <= 100.0 and math.isfinite(f) for f in factors):
         raise ValueError("--noise factors must be in 0 … 100")
-    print(f"bench selfsense: noise × {', '.join(f'{f:g}' for f in factors)} (offline, simulated "
-          "time: the firmware's core, the plant with the Flexinol resistivity)", flush=True)
-    result = bench_selfsense(factors)
+    where = (f"closed loop on the mock bench at {MOCK_SPEED:g}× over its real transports"
+             if args.mock else "closed loop offline, simulated time")  # fmt: skip
+    print(f"bench selfsense: noise × {', '.join(f'{f:g}' for f in factors)} (estimates offline; "
+          f"{where}: the firmware's core, the plant with the Flexinol resistivity)", flush=True)
+    result = bench_selfsense(factors, mock=args.mock)
     print(format_table(result))
     if args.json:
         text = json.dumps(result, indent=1) + "\n"
@@ -343,4 +497,8 @@ def add_bench_selfsense(bsub) -> None:
     b.add_argument("--noise", type=float, nargs="+", metavar="X",
                    help="noise factors of the wire-voltage channel (1 3)")  # fmt: skip
     b.add_argument("--json", type=output_file, help="write the figures as JSON" + OUTPUT_HELP)
+    b.add_argument("--mock", action="store_true",
+                   help=f"run the closed-loop figures on the mock bench ({MOCK_SPEED:g}×, real "
+                   "transports, the Python firmware: the C core) instead of offline: about "
+                   "2 min of wall time per noise level")  # fmt: skip
     b.set_defaults(func=cmd_bench_selfsense)

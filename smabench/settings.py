@@ -936,6 +936,10 @@ _DEVICE_OPTIONS: list[Setting] = [
     Setting("mock.adapter_latency_ms", "adapter latency", "The mock's sensor holds every answer "
             "this long, as an FTDI USB/RS-485 adapter's latency timer does.", "devices",
             unit="ms", default=0.0, min=0.0, max=1000.0),  # fmt: skip
+    Setting("mock.wire_noise_v", "wire-voltage noise", "The mock driver's wire-voltage "
+            "channel (the ADS1115 on the Kelvin leads) gets this Gaussian noise, RMS at the wire, "
+            "drawn per 1 ms step (Python firmware only; 0: none).", "devices", unit="V",
+            default=0.0, min=0.0, max=0.01, decimals=6),  # fmt: skip
     Setting("mock.tcp_port", "Modbus TCP port", "The mock sensor's TCP port (0: any free one).",
             "devices", kind="int", default=0, min=0, max=65535, decimals=0),  # fmt: skip
     Setting("mock.ready_timeout_s", "mock readiness timeout", "Longest wait for a started mock "

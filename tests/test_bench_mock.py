@@ -377,3 +377,27 @@ def test_modbus_latency_counts_reads_that_got_no_answer(monkeypatch):
     monkeypatch.setattr(link_bench, "DisplacementSensor", lambda _m, _s: Sensor([False] * 6))
     with pytest.raises(RuntimeError, match="none of 5 Modbus reads was answered"):
         link_bench.modbus_latency("rtu:x", 5)
+
+
+def test_the_mock_drivers_wire_voltage_gets_the_asked_noise():
+    """``smabench mock --wire-noise-v V``: Gaussian noise of the wire-voltage channel, V RMS at
+    the wire, one draw per 1 ms step (as the offline driver draws it), seeded; refused with the
+    emulated firmware, whose ADS1115 model has no noise input."""
+    from smabench.drivers.mock.bench import MockBench
+    from smabench.drivers.mock.firmware import MockFirmware
+
+    fw = MockFirmware(0.0)
+    draws = {}
+    for seed in (3, 3, 4):
+        bench = MockBench(2.0, speed=5.0, wire_noise_v=5e-5, seed=seed)
+        draws.setdefault(seed, []).append(
+            np.array([bench._couple(float(k), 1e-3, fw).wire_offset_v for k in range(4000)])
+        )
+    a, b = draws[3]
+    np.testing.assert_array_equal(a, b)  # seeded
+    assert not np.array_equal(a, draws[4][0])
+    assert np.std(a) == pytest.approx(5e-5, rel=0.05) and abs(np.mean(a)) < 5e-6
+    quiet = MockBench(2.0, speed=5.0)
+    assert quiet._couple(1.0, 1e-3, fw).wire_offset_v == 0.0
+    with pytest.raises(ValueError, match="Python firmware"):
+        MockBench(2.0, firmware="emulated", wire_noise_v=5e-5)

@@ -30,6 +30,7 @@ from smabench.protocols import Protocol, ProtocolSettings
 from smabench.sessions import (
     FLAG_AFTER_END,
     FLAG_DEADLINE_MISSED,
+    FLAG_FEEDBACK_RESISTANCE,
     FLAG_INTERLOCK,
     FLAG_SENSOR_INVALID,
     FLAG_TELEMETRY_STALE,
@@ -652,3 +653,60 @@ def test_normal_thread_lowers_a_real_time_thread_for_a_computation(monkeypatch):
     with priority.normal_thread() as lowered:
         assert lowered is False
     assert state == {"policy": priority.os.SCHED_OTHER, "prio": 0}
+
+
+# ----------------------------------------------------------------------------- a silent sensor
+@pytest.mark.slow
+def test_a_silent_sensor_does_not_hold_up_the_loop_that_runs_on_the_estimate():
+    """The laser stops answering for 10 s while PID holds mid-stroke with the resistance
+    fallback: every request to it waits its Modbus timeout (50 ms, ten loop periods), so the
+    loop asks it only every SENSOR_PROBE_WHILE_SILENT_S while it is silent and otherwise keeps
+    its rate on the estimate; it reads every tick again once the sensor answers. (On the mock bench
+    over TCP the loop asked every tick: 20 Hz instead of 80, the hold drifted 45 % of the
+    stroke and the driver's host timeout ended the session.)"""
+    from smabench import selfsense_bench as sb
+    from smabench.bench.runtime import SENSOR_PROBE_WHILE_SILENT_S
+    from smabench.control import ControllerSettings, build_controller
+    from smabench.physics.wire import PAPER_WIRE
+
+    cal = sb.closed_loop_calibration(1.0)
+    bench = sb._bench(1.0, 31)
+    bench.sensor.timeout_s = 0.05
+    proto = ProtocolSettings(name="step", cycles=1, period_s=100.0, amplitude_mm=0.4,
+                             lead_in_s=0.0)  # fmt: skip
+    controller = build_controller(proto, ControllerSettings(mode="pid"), sb.LOAD_KG, PAPER_WIRE,
+                                  2.0)  # fmt: skip
+    asked_at: list[float] = []
+    real_read = bench.sensor.read_or_flag
+
+    def read_or_flag():
+        asked_at.append(bench.clock.now())
+        return real_read()
+
+    bench.sensor.read_or_flag = read_or_flag
+    t_drop = {}
+
+    def drop(rt, b):
+        t_drop["t"] = b.clock.now()
+        b.sensor.fail_for(10.0)
+
+    k0 = int(round(15.0 / PERIOD_S))
+    result, rows, _ = session(controller, bench=bench, at={k0: drop}, max_duration_s=30.0,
+                              selfsense=cal, fallback="resistance", probe_current_a=sb.PROBE_A,
+                              wire=PAPER_WIRE)  # fmt: skip
+    assert "maximum duration" in result.reason, result.reason
+    t, flags = col(rows, "t_s"), col(rows, "flags").astype(int)
+    on_est = (flags & FLAG_FEEDBACK_RESISTANCE) != 0
+    gone = (t >= 15.0) & (t < 25.0)
+    periods = np.diff(t[gone])
+    asked = int(np.sum((np.array(asked_at) >= t_drop["t"])
+                       & (np.array(asked_at) < t_drop["t"] + 10.0)))  # fmt: skip
+    print(f"\nsilent 10 s: {int(gone.sum())} ticks, {asked} requests to the sensor, longest "
+          f"period {periods.max() * 1e3:.1f} ms, {int(on_est.sum())} rows on the estimate")
+    assert on_est[gone].mean() > 0.98 and not on_est[t >= 25.5].any()
+    # the loop kept its rate but for one held tick per request (each waits the timeout)
+    assert gone.sum() >= 10.0 / PERIOD_S - asked * (0.05 / PERIOD_S) - 5
+    assert asked <= 10.0 / SENSOR_PROBE_WHILE_SILENT_S * 1.1 + 2
+    sp, pos = col(rows, "setpoint_mm"), col(rows, "position_mm")
+    back = t >= 26.0
+    assert np.nanmax(np.abs(pos[back] - sp[back])) < 0.1  # on the laser again, holding

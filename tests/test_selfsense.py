@@ -373,7 +373,7 @@ def test_bench_selfsense_fallback_holds_the_position(bench_run):
                    "1.17×): the thermal map's error follows the heat balance's temperature, "
                    "whose dynamics are not the plant's (0.05-0.1 mm behind the wire after each "
                    "current swing); the filter that weights the probe's readings trades it "
-                   "against the hold (THERMAL_FILTER_REF_A)")
+                   "against the hold (THERMAL_FILTER_REF_A); on the mock bench (--mock) 2.41×")
 def test_bench_selfsense_tracking_target(bench_run):
     figs = bench_run[2]["noise"]["1x"]
     assert figs["met"]["tracking_ratio"], figs

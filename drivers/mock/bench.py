@@ -20,6 +20,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import logging
+import math
 import os
 import queue
 import re
@@ -32,6 +33,8 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 from smabench.drivers.mock.cut import FAULTS
 from smabench.drivers.mock.firmware import Electrical, MockFirmware
@@ -260,6 +263,7 @@ class MockBench:
         realtime: bool = False,
         fault: str | None = None,
         resistivity: ResistivityModel | None = None,
+        wire_noise_v: float = 0.0,
     ) -> None:
         """``realtime``: at real-time speed (1), the stand-in driver favoured where allowed (the
         Python firmware's thread SCHED_FIFO :data:`DEVICE_RT_PRIORITY`, the simavr harness at
@@ -276,7 +280,10 @@ class MockBench:
         shorted to ground stays; a hung MCU ends with its own watchdog's reset. What the hardware
         cut did is printed on stdout and kept in :attr:`fault_report`; ``resistivity``: the
         wire's resistance from that model (:mod:`smabench.physics.resistance`: R(ξ, T, ε), so
-        the wire voltage the driver measures is I·R(ξ, T, ε)), None: the plant's default."""
+        the wire voltage the driver measures is I·R(ξ, T, ε)), None: the plant's default;
+        ``wire_noise_v``: Gaussian noise of the wire-voltage channel at the wire, V RMS, drawn
+        per 1 ms step as the offline driver draws it (``SimCurrentSource`` in drivers/sim.py;
+        the Python firmware only: the emulator's ADS1115 model has no noise input)."""
         if fault is not None and fault not in FAULTS:
             raise ValueError(f"fault must be one of {', '.join(FAULTS)}, got {fault!r}")
         self.fault = fault
@@ -290,6 +297,13 @@ class MockBench:
             raise ValueError(f"speed must be in (0, 100], got {speed}")
         if firmware == "emulated" and speed != 1.0:
             raise ValueError("the emulated firmware runs in real time only (speed 1)")
+        if not 0.0 <= wire_noise_v < math.inf:
+            raise ValueError(f"wire_noise_v must be ≥ 0 V, got {wire_noise_v}")
+        if wire_noise_v and firmware == "emulated":
+            raise ValueError("wire-voltage noise needs the Python firmware (the emulator's "
+                             "ADS1115 model has no noise input)")  # fmt: skip
+        self.wire_noise_v = wire_noise_v
+        self._wire_noise_rng = np.random.default_rng(seed)
         if bootloader and firmware != "emulated":
             raise ValueError("--bootloader needs the emulated firmware (--firmware emulated)")
         if blank and not bootloader:
@@ -313,8 +327,11 @@ class MockBench:
 
     def _couple(self, t_ms: float, dt_s: float, fw: MockFirmware) -> Electrical:
         state = self.link.step(dt_s, fw.current_ma / 1000.0)
+        noise_v = (self.wire_noise_v * float(self._wire_noise_rng.standard_normal())
+                   if self.wire_noise_v else 0.0)  # fmt: skip
         return Electrical(
             resistance_ohm=state.resistance_ohm,
+            wire_offset_v=noise_v,
             ambient_c=state.ambient_c,
             wire_temperature_c=state.temperature_c if self.thermocouple else None,
             fault=self._fault_now(t_ms, dt_s, fw),

@@ -65,6 +65,7 @@ def cmd_mock(args: argparse.Namespace) -> int:
         realtime=True,  # up to REALTIME_MAX_SPEED; the simavr harness too, started before
         fault=getattr(args, "fault", None),
         resistivity=RESISTIVITY_PRESETS[args.resistivity] if args.resistivity else None,
+        wire_noise_v=args.wire_noise_v,
     )
     if not args.verbose:  # pymodbus logs an ERROR with a frame dump for every dropped client
         logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
@@ -305,6 +306,10 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
         help="hold every sensor answer this long, as an FTDI USB/RS-485 adapter's latency timer "
         "does (0 … 1000 ms; 16 ms by default on a real one)",
     )
+    s.add_argument(f"--{prefix}wire-noise-v", type=settings_schema.arg_type("mock.wire_noise_v"),
+                   default=0.0, metavar="V",
+                   help="Gaussian noise of the driver's wire-voltage channel, V RMS at the wire, "
+                   "per 1 ms step (Python firmware; 0 … 0.01; 0)")  # fmt: skip
     s.add_argument(
         f"--{prefix}trace",
         metavar="FILE.csv",
@@ -475,6 +480,8 @@ def cmd_run(args: argparse.Namespace) -> int:
                 mock_args += ["--resistivity", args.mock_resistivity]
             mock_args += ["--sensor-map", args.sensor_map]  # it serves what the client reads
             mock_args += ["--adapter-latency-ms", f"{args.mock_adapter_latency_ms:g}"]
+            if args.mock_wire_noise_v:
+                mock_args += ["--wire-noise-v", f"{args.mock_wire_noise_v:g}"]
             mock = MockProcess(mock_args, ready_s)
             port = mock.ports.driver
             spec = mock.ports.sensor_rtu if args.mock_sensor == "rtu" else mock.ports.sensor_tcp

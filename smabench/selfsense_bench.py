@@ -279,8 +279,9 @@ def closed_loop_figures(noise_factor: float) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------ closed loop, mock bench
-MOCK_SPEED = 5.0
-"""The mock bench's speed (device time per wall time), as the control table's mock runs."""
+MOCK_SPEEDS = {"python": 5.0, "emulated": 1.0}
+"""The mock bench's speed (device time per wall time) per firmware: the Python firmware as the
+control table's mock runs, the emulated firmware in real time (the only speed it runs at)."""
 MOCK_RATE_HZ = 400.0
 """The loop's wall rate on the mock (12.5 ms of device time per tick at 5×)."""
 
@@ -298,11 +299,12 @@ class MockRun:
 
 
 def _mock_run(noise_factor: float, seed: int, settings_kw: dict, name: str,
-              drop_at_s: float | None = None) -> MockRun:  # fmt: skip
-    """A session through ``smabench mock`` over its real transports (the Python firmware, whose
-    behaviour is the C core; the wire voltage with the chain's noise × ``noise_factor`` per 1 ms
-    step); ``drop_at_s``: the sensor stops answering for :data:`DROPOUT_S` (device time) once
-    the session's clock passes this."""
+              drop_at_s: float | None = None, firmware: str = "python") -> MockRun:  # fmt: skip
+    """A session through ``smabench mock`` over its real transports (``firmware``: the Python
+    firmware, whose behaviour is the C core, or the firmware in the emulator; the wire voltage
+    with the chain's noise × ``noise_factor``); ``drop_at_s``: the sensor stops answering for
+    :data:`DROPOUT_S` (device time) once the session's clock passes this."""
+    speed = MOCK_SPEEDS[firmware]
     import tempfile
     import threading
     from pathlib import Path
@@ -314,14 +316,14 @@ def _mock_run(noise_factor: float, seed: int, settings_kw: dict, name: str,
     with tempfile.TemporaryDirectory(prefix="smabench-bench-selfsense-") as tmp:
         trace = Path(tmp) / "trace.csv"
         settings = RunSettings(load_kg=LOAD_KG, rate_hz=MOCK_RATE_HZ, out_dir=Path(tmp),
-                               session_id=name, time_scale=MOCK_SPEED,
+                               session_id=name, time_scale=speed,
                                probe_current_a=PROBE_A, **settings_kw)  # fmt: skip
         settings.validate()
         controller = settings.build_controller() if settings.controller is not None else None
         noise_v = ADS1115_KELVIN_CHAIN.noise_rms_v * noise_factor
-        mock_args = ["--load-kg", f"{LOAD_KG:g}", "--speed", f"{MOCK_SPEED:g}", "--resistivity",
+        mock_args = ["--load-kg", f"{LOAD_KG:g}", "--speed", f"{speed:g}", "--resistivity",
                      "flexinol", "--wire-noise-v", f"{noise_v:.9g}", "--seed", str(seed),
-                     "--trace", str(trace)]  # fmt: skip
+                     "--trace", str(trace), "--firmware", firmware]  # fmt: skip
         due = threading.Event()
 
         def on_sample(row: dict) -> None:
@@ -335,7 +337,7 @@ def _mock_run(noise_factor: float, seed: int, settings_kw: dict, name: str,
             def drop() -> None:  # the mock's control channel, off the loop's thread
                 while not done.is_set():
                     if due.wait(0.05):
-                        mock.send(f"sensor-drop {DROPOUT_S / MOCK_SPEED:g}")
+                        mock.send(f"sensor-drop {DROPOUT_S / speed:g}")  # wall seconds
                         return
 
             dropper = threading.Thread(target=drop, name="selfsense-drop", daemon=True)
@@ -357,7 +359,7 @@ def _mock_run(noise_factor: float, seed: int, settings_kw: dict, name: str,
                    None if controller is None else controller.reference)  # fmt: skip
 
 
-def mock_closed_loop_figures(noise_factor: float) -> dict[str, Any]:
+def mock_closed_loop_figures(noise_factor: float, firmware: str = "python") -> dict[str, Any]:
     """The closed-loop figures of :func:`closed_loop_figures` on the mock bench: the map learnt
     from four cycles recorded there (the thermal map), PID on the laser and on the estimate on
     the control table's sines, and the hold with the mock's sensor silent for 60 s."""
@@ -371,7 +373,7 @@ def mock_closed_loop_figures(noise_factor: float) -> dict[str, Any]:
     from smabench.protocols import ProtocolSettings
 
     cycles = ProtocolSettings(name="cycles", cycles=4, heat_s=3.0, current_a=1.2)
-    run = _mock_run(noise_factor, 11, {"protocol": cycles}, "calibration")
+    run = _mock_run(noise_factor, 11, {"protocol": cycles}, "calibration", firmware=firmware)
     d = run.data
     arrays = ss.SessionArrays(
         np.asarray(d["t_s"], float), np.asarray(d["current_A"], float),
@@ -391,7 +393,8 @@ def mock_closed_loop_figures(noise_factor: float) -> dict[str, Any]:
                 kw = {"protocol": protocol_settings(case),
                       "controller": ControllerSettings(mode="pid"), "selfsense": str(cal_path),
                       "feedback": feedback}  # fmt: skip
-                r = _mock_run(noise_factor, 21, kw, f"{ref}-{feedback}".replace(" ", "-"))
+                r = _mock_run(noise_factor, 21, kw, f"{ref}-{feedback}".replace(" ", "-"),
+                              firmware=firmware)  # fmt: skip
                 if r.status != "completed":
                     raise RuntimeError(f"mock session {ref} on {feedback} ended {r.status}: "
                                        f"{r.reason}")  # fmt: skip
@@ -403,8 +406,8 @@ def mock_closed_loop_figures(noise_factor: float) -> dict[str, Any]:
                                 amplitude_mm=0.4, lead_in_s=0.0)  # fmt: skip
         kw = {"protocol": hold, "controller": ControllerSettings(mode="pid"),
               "selfsense": str(cal_path), "fallback": "resistance",
-              "max_duration_s": duration_s / MOCK_SPEED}  # fmt: skip  (host clock)
-        r = _mock_run(noise_factor, 31, kw, "hold", drop_at_s=DROPOUT_AT_S)
+              "max_duration_s": duration_s / MOCK_SPEEDS[firmware]}  # fmt: skip  (host clock)
+        r = _mock_run(noise_factor, 31, kw, "hold", drop_at_s=DROPOUT_AT_S, firmware=firmware)
     if r.status != "completed" and "maximum duration" not in r.reason:
         raise RuntimeError(f"mock hold session ended {r.status}: {r.reason}")
     t = np.asarray(r.data["t_s"], float)
@@ -425,14 +428,15 @@ def mock_closed_loop_figures(noise_factor: float) -> dict[str, Any]:
 
 # ------------------------------------------------------------------ the benchmark
 def bench_selfsense(noise_factors: tuple[float, ...] = NOISE_FACTORS,
-                    mock: bool = False) -> dict[str, Any]:  # fmt: skip
+                    mock: str | None = None) -> dict[str, Any]:  # fmt: skip
     """Every figure at each noise factor: ``{"noise": {factor: figures}, "targets": …}``;
-    ``mock``: the closed-loop figures on the mock bench over its real transports."""
+    ``mock``: the closed-loop figures on the mock bench over its real transports, with this
+    firmware (``python`` or ``emulated``)."""
     runs = plant_runs()
-    out: dict[str, Any] = {"targets": dict(TARGETS), "noise": {},
-                           "closed_loop": "mock" if mock else "offline"}  # fmt: skip
+    where = f"mock, {mock} firmware" if mock else "offline"
+    out: dict[str, Any] = {"targets": dict(TARGETS), "noise": {}, "closed_loop": where}
     for f in noise_factors:
-        loop = mock_closed_loop_figures(f) if mock else closed_loop_figures(f)
+        loop = mock_closed_loop_figures(f, mock) if mock else closed_loop_figures(f)
         figs = {**estimation_figures(runs, f), **loop}
         figs["met"] = {k: bool(figs[k] <= v) for k, v in TARGETS.items()}
         out["noise"][f"{f:g}x"] = figs
@@ -473,8 +477,9 @@ def cmd_bench_selfsense(args: argparse.Namespace) -> int:
     factors = tuple(args.noise) if args.noise else NOISE_FACTORS
     if not all(0.0 <= f <= 100.0 and math.isfinite(f) for f in factors):
         raise ValueError("--noise factors must be in 0 … 100")
-    where = (f"closed loop on the mock bench at {MOCK_SPEED:g}× over its real transports"
-             if args.mock else "closed loop offline, simulated time")  # fmt: skip
+    where = (f"closed loop on the mock bench at {MOCK_SPEEDS[args.mock]:g}× over its real "
+             f"transports, {args.mock} firmware" if args.mock
+             else "closed loop offline, simulated time")  # fmt: skip
     print(f"bench selfsense: noise × {', '.join(f'{f:g}' for f in factors)} (estimates offline; "
           f"{where}: the firmware's core, the plant with the Flexinol resistivity)", flush=True)
     result = bench_selfsense(factors, mock=args.mock)
@@ -497,8 +502,9 @@ def add_bench_selfsense(bsub) -> None:
     b.add_argument("--noise", type=float, nargs="+", metavar="X",
                    help="noise factors of the wire-voltage channel (1 3)")  # fmt: skip
     b.add_argument("--json", type=output_file, help="write the figures as JSON" + OUTPUT_HELP)
-    b.add_argument("--mock", action="store_true",
-                   help=f"run the closed-loop figures on the mock bench ({MOCK_SPEED:g}×, real "
-                   "transports, the Python firmware: the C core) instead of offline: about "
-                   "2 min of wall time per noise level")  # fmt: skip
+    b.add_argument("--mock", nargs="?", const="python", choices=tuple(MOCK_SPEEDS),
+                   help="run the closed-loop figures on the mock bench over its real transports "
+                   "instead of offline: the Python firmware (the C core, 5×, about 2 min of "
+                   "wall time per noise level; the default) or the firmware in the emulator "
+                   "(1×, about 8 min)")  # fmt: skip
     b.set_defaults(func=cmd_bench_selfsense)

@@ -938,7 +938,8 @@ _DEVICE_OPTIONS: list[Setting] = [
             unit="ms", default=0.0, min=0.0, max=1000.0),  # fmt: skip
     Setting("mock.wire_noise_v", "wire-voltage noise", "The mock driver's wire-voltage "
             "channel (the ADS1115 on the Kelvin leads) gets this Gaussian noise, RMS at the wire, "
-            "drawn per 1 ms step (Python firmware only; 0: none).", "devices", unit="V",
+            "drawn per 1 ms step (the emulated firmware: per conversion; 0: none).", "devices",
+            unit="V",
             default=0.0, min=0.0, max=0.01, decimals=6),  # fmt: skip
     Setting("mock.tcp_port", "Modbus TCP port", "The mock sensor's TCP port (0: any free one).",
             "devices", kind="int", default=0, min=0, max=65535, decimals=0),  # fmt: skip

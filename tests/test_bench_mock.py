@@ -382,7 +382,7 @@ def test_modbus_latency_counts_reads_that_got_no_answer(monkeypatch):
 def test_the_mock_drivers_wire_voltage_gets_the_asked_noise():
     """``smabench mock --wire-noise-v V``: Gaussian noise of the wire-voltage channel, V RMS at
     the wire, one draw per 1 ms step (as the offline driver draws it), seeded; refused with the
-    emulated firmware, whose ADS1115 model has no noise input."""
+    emulated firmware: tests/test_firmware_emulated.py."""
     from smabench.drivers.mock.bench import MockBench
     from smabench.drivers.mock.firmware import MockFirmware
 
@@ -399,5 +399,3 @@ def test_the_mock_drivers_wire_voltage_gets_the_asked_noise():
     assert np.std(a) == pytest.approx(5e-5, rel=0.05) and abs(np.mean(a)) < 5e-6
     quiet = MockBench(2.0, speed=5.0)
     assert quiet._couple(1.0, 1e-3, fw).wire_offset_v == 0.0
-    with pytest.raises(ValueError, match="Python firmware"):
-        MockBench(2.0, firmware="emulated", wire_noise_v=5e-5)

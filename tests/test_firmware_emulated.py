@@ -365,6 +365,38 @@ def test_set_current_follows(cs, tel, sim):
     tel.wait(lambda t: not t.enabled and t.duty == 0.0)
 
 
+def test_the_wire_channels_noise_reaches_the_telemetry(cs, tel, sim):
+    """`VNOISE` (smabench mock --firmware emulated --wire-noise-v): Gaussian noise on the
+    emulated ADS1115's wire channel, one draw per conversion. At 2 mV RMS at the wire the frames'
+    V/I spread by 2 mV / √4 (a window averages 4 conversions) / 0.44 V = 0.23 % of R around the
+    wire's R; quiet, by the 0.1 mV steps alone. A value out of range is refused on stderr."""
+    import numpy as np
+
+    sim.set_resistance(0.44)
+    cs.set_current(1.0, wait=True)
+    cs.enable(True)
+    settled = tel.wait(lambda t: abs(t.current_a - 1.0) <= 0.02)
+
+    def spread(after_ms: float) -> tuple[float, float]:
+        start = tel.mark()
+        k, _ = tel.find(lambda t: t.t_ms >= after_ms + 400, start)
+        r = np.array([t.voltage_v / t.current_a for t in tel.items[start : k + 1]
+                      if t.t_ms > after_ms + 20])  # fmt: skip
+        return float(np.mean(r)), float(np.std(r) / np.mean(r))
+
+    quiet_r, quiet_sd = spread(settled.t_ms)
+    line = len(sim.stderr)
+    sim.send("VNOISE -1")
+    sim.wait_stderr("VNOISE takes", line)
+    sim.send("VNOISE 0.002")
+    noisy_r, noisy_sd = spread(tel.items[-1].t_ms)
+    print(f"\nV/I quiet {quiet_r:.5f} Ω ± {quiet_sd * 100:.3f} %, with 2 mV RMS "
+          f"{noisy_r:.5f} Ω ± {noisy_sd * 100:.3f} %")
+    assert quiet_sd < 0.0006 and quiet_r == pytest.approx(0.44, rel=0.003)
+    assert 0.0015 < noisy_sd < 0.0035 and noisy_r == pytest.approx(0.44, rel=0.003)
+    cs.make_safe()
+
+
 def test_clamping(cs, tel):
     cs.set_limits(0.8, 1.0)
     assert cs.set_current(1.5, wait=True) == p.Status.CLAMPED

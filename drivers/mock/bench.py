@@ -126,8 +126,11 @@ class EmulatedDriver:
         thermocouple: bool = False,
         realtime: bool = False,
         fault: str | None = None,
+        wire_noise_v: float = 0.0,
     ) -> None:
-        """``realtime``: the harness at nice :data:`HARNESS_NICE` where allowed (it
+        """``wire_noise_v``: Gaussian noise of the emulated ADS1115's wire channel, V RMS at the
+        wire, one draw per conversion (the harness's ``VNOISE``); ``realtime``: the harness at
+        nice :data:`HARNESS_NICE` where allowed (it
         stands in for a microcontroller: starved by host load, it would fall silent while the
         host's link and telemetry timeouts run on); ``bootloader``: boot the Arduino
         bootloader (:data:`BOOTLOADER_HEX`) with the auto-reset of a Nano (every open of the
@@ -162,6 +165,8 @@ class EmulatedDriver:
             self.stop()
             raise RuntimeError(f"simavr harness did not start: {first!r}")
         self.port_name = first[4:]
+        if wire_noise_v > 0.0:
+            self._send(f"VNOISE {wire_noise_v:.9g}")
         self._states: queue.Queue[str] = queue.Queue()
         self._running = True
         self._reader = threading.Thread(target=self._read, name="sim-reader", daemon=True)
@@ -282,8 +287,8 @@ class MockBench:
         wire's resistance from that model (:mod:`smabench.physics.resistance`: R(ξ, T, ε), so
         the wire voltage the driver measures is I·R(ξ, T, ε)), None: the plant's default;
         ``wire_noise_v``: Gaussian noise of the wire-voltage channel at the wire, V RMS, drawn
-        per 1 ms step as the offline driver draws it (``SimCurrentSource`` in drivers/sim.py;
-        the Python firmware only: the emulator's ADS1115 model has no noise input)."""
+        per 1 ms step as the offline driver draws it (``SimCurrentSource`` in drivers/sim.py);
+        the emulated firmware: per ADS1115 conversion, in the harness (``VNOISE``)."""
         if fault is not None and fault not in FAULTS:
             raise ValueError(f"fault must be one of {', '.join(FAULTS)}, got {fault!r}")
         self.fault = fault
@@ -299,9 +304,6 @@ class MockBench:
             raise ValueError("the emulated firmware runs in real time only (speed 1)")
         if not 0.0 <= wire_noise_v < math.inf:
             raise ValueError(f"wire_noise_v must be ≥ 0 V, got {wire_noise_v}")
-        if wire_noise_v and firmware == "emulated":
-            raise ValueError("wire-voltage noise needs the Python firmware (the emulator's "
-                             "ADS1115 model has no noise input)")  # fmt: skip
         self.wire_noise_v = wire_noise_v
         self._wire_noise_rng = np.random.default_rng(seed)
         if bootloader and firmware != "emulated":
@@ -405,6 +407,7 @@ class MockBench:
                     thermocouple=self.thermocouple,
                     realtime=self.realtime,
                     fault=self.fault,
+                    wire_noise_v=self.wire_noise_v,
                 )
                 driver_port = self.emulated.port_name
             rtu_ends = self._start_socat()

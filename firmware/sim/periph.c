@@ -34,6 +34,24 @@ static int ads_present = 1;
 static uint8_t ads_selected, ads_index, ads_pointer;
 static uint8_t ads_wbuf[3];
 static uint16_t ads_config = 0x8583u, ads_conversion;
+/* the wire channel's noise, V RMS at the wire (VNOISE), one Gaussian draw per conversion from a
+ * seeded generator (the runs repeat) */
+static double ads_noise_v;
+static uint64_t ads_rng = 0x9E3779B97F4A7C15ull;
+
+static double ads_uniform(void) /* (0, 1): splitmix64 */
+{
+    uint64_t z = (ads_rng += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    z ^= z >> 31;
+    return ((double)(z >> 11) + 0.5) / 9007199254740992.0;
+}
+
+static double ads_gauss(void) /* Box-Muller */
+{
+    return sqrt(-2.0 * log(ads_uniform())) * cos(6.283185307179586 * ads_uniform());
+}
 
 static double ads_fsr_v(uint16_t cfg)
 {
@@ -46,7 +64,7 @@ static void ads_convert(void)
     unsigned mux = (ads_config >> 12) & 7u;
     double v = 0.0;
     if (mux == 0u) /* AIN0-AIN1: the wire through the two 1:2 dividers */
-        v = wire_v * 0.5;
+        v = (wire_v + (ads_noise_v > 0.0 ? ads_noise_v * ads_gauss() : 0.0)) * 0.5;
     else if (mux == 3u) /* AIN2-AIN3: the shunt */
         v = wire_a * ELEC_SHUNT_MOHM * 1e-3;
     double code = floor(v / ads_fsr_v(ads_config) * 32768.0 + 0.5);
@@ -177,6 +195,15 @@ void periph_state(FILE *f)
 int periph_command(const char *cmd, const char *arg)
 {
     char *end;
+    if (!strcmp(cmd, "VNOISE")) { /* VNOISE <V RMS at the wire> [seed] */
+        double v = arg ? strtod(arg, &end) : -1.0;
+        if (!arg || *end || !isfinite(v) || v < 0.0 || v > 0.01) {
+            fprintf(stderr, "smabench-sim: VNOISE takes 0 ... 0.01 V RMS\n");
+            return 1;
+        }
+        ads_noise_v = v;
+        return 1;
+    }
     if (!strcmp(cmd, "ESTOP")) {
         if (!arg || (strcmp(arg, "0") && strcmp(arg, "1"))) {
             fprintf(stderr, "smabench-sim: ESTOP takes 0 or 1\n");

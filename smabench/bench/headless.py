@@ -308,8 +308,8 @@ def add_mock_arguments(s: argparse.ArgumentParser, prefix: str = "") -> None:
     )
     s.add_argument(f"--{prefix}wire-noise-v", type=settings_schema.arg_type("mock.wire_noise_v"),
                    default=0.0, metavar="V",
-                   help="Gaussian noise of the driver's wire-voltage channel, V RMS at the wire, "
-                   "per 1 ms step (Python firmware; 0 … 0.01; 0)")  # fmt: skip
+                   help="Gaussian noise of the driver's wire-voltage channel, V RMS at the "
+                   "wire, per 1 ms step (emulated firmware: per conversion; 0 … 0.01; 0)")
     s.add_argument(
         f"--{prefix}trace",
         metavar="FILE.csv",

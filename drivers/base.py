@@ -139,6 +139,11 @@ class CurrentSourceDevice(Protocol):
     def set_current(self, current_a: float) -> object:
         """Command the wire current, A (0 … the device's limit)."""
 
+    @property
+    def last_ack_host_time(self) -> float | None:
+        """Host clock (the telemetry's ``host_time`` clock) when the newest ACK arrived, in the
+        byte stream's order with the frames (None before the first)."""
+
     def set_probe_current(self, current_a: float) -> None:
         """Hold a small probe current while the output is enabled, A (0 = off, at most 0.1 A;
         ValueError outside): the device drives the larger of the setpoint and the probe, so the
@@ -158,12 +163,27 @@ class CurrentSourceDevice(Protocol):
         """Output off now (see the module docstring); True when confirmed."""
 
 
+class PendingRead(Protocol):
+    """A reading asked in the background (:meth:`DisplacementDevice.read_in_background`)."""
+
+    def done(self) -> bool:
+        """Whether its answer (or its timeout) has come."""
+
+    def result(self, timeout: float | None = None) -> Sample:
+        """The reading (flagged like :meth:`DisplacementDevice.read_or_flag`'s); waits for it
+        up to ``timeout`` s when not done."""
+
+
 @runtime_checkable
 class DisplacementDevice(Protocol):
     """A connected displacement sensor (units: mm, s)."""
 
     def read_or_flag(self) -> Sample:
         """One reading; never raises for link problems: they come back as flagged samples."""
+
+    def read_in_background(self) -> PendingRead:
+        """:meth:`read_or_flag` without holding the caller: a silent sensor's request waits its
+        timeout meanwhile. The caller does not use the sensor until it is done."""
 
     def make_safe(self) -> object:
         """Stop anything the sensor was asked to do (it is passive); never raises."""

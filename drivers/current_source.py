@@ -393,6 +393,13 @@ class CurrentSource:
         with self._lock:
             return self._latest
 
+    @property
+    def last_ack_host_time(self) -> float | None:
+        """Host clock when the newest ACK was decoded, on the telemetry's ``host_time`` clock
+        and in the byte stream's order with it (None before the first): a frame with a later
+        ``host_time`` left the device after that command arrived."""
+        return self._link.last_ack_at
+
     def telemetry_age_s(self) -> float | None:
         """Host time since the latest telemetry frame arrived, s (None before the first)."""
         t = self.latest()

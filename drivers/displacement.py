@@ -18,6 +18,7 @@ record the sample and carry on. After a lost link the next read reconnects.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import functools
 import json
@@ -26,6 +27,7 @@ import math
 import os
 import re
 import struct
+import threading
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -752,6 +754,20 @@ class DisplacementSensor:
             t1 = time.monotonic()
             return Sample(position_mm=math.nan, t_s=0.5 * (t0 + t1),
                           flags=exc.flag or FLAG_LINK_LOST, latency_s=t1 - t0, error=str(exc))
+
+    def read_in_background(self) -> concurrent.futures.Future[Sample]:
+        """:meth:`read_or_flag` on a thread of its own (the caller leaves the client alone until
+        the future is done)."""
+        fut: concurrent.futures.Future[Sample] = concurrent.futures.Future()
+
+        def run() -> None:
+            try:
+                fut.set_result(self.read_or_flag())
+            except BaseException as exc:  # a closed client: the caller gets it from result()
+                fut.set_exception(exc)
+
+        threading.Thread(target=run, name="sensor-read", daemon=True).start()
+        return fut
 
     def read_registers(self, address: int, count: int) -> list[int]:
         """Raw read of ``count`` registers with the map's function code (diagnostics)."""

@@ -245,6 +245,7 @@ class FramedLink:
         self._resync_thread: threading.Thread | None = None
         self.opened_at = 0.0  # host time the port was last (re)opened, s
         self.last_round_trip_s: float | None = None
+        self.last_ack_at: float | None = None  # host clock when the newest ACK was decoded
         self._n = dict.fromkeys(
             ("tx", "retries", "timeouts", "reconnects", "keepalives", "superseded"), 0
         )
@@ -684,6 +685,7 @@ class FramedLink:
             self._current = None
             cur.round_trip_s = now - cur.sent_at
             self.last_round_trip_s = cur.round_trip_s
+            self.last_ack_at = now
             if ack.status not in (p.Status.OK, p.Status.CLAMPED):
                 log.info("%s: %s", type_name(cur.type), ack.status_name)
             cur.finish(ack=ack)

@@ -187,6 +187,7 @@ class SimCurrentSource:
         self._latest: p.Telemetry | None = None
         self._stalled = False
         self.commands = 0  # host commands through the device API (each feeds the host timeout)
+        self.last_ack_host_time: float | None = None  # plant clock of the newest ACK
         self.current_a = 0.0  # flowing now (device side)
         ack = self._call(*p.identify())
         self.info = p.DeviceInfo.from_data(ack.data)
@@ -250,6 +251,7 @@ class SimCurrentSource:
         for pkt in self._frames(self.fw.receive(p.encode_frame(seq, type_, payload)), now):
             ack = p.Ack.from_payload(pkt.payload)
             if pkt.type == p.MsgType.ACK and ack.seq == seq:
+                self.last_ack_host_time = now
                 self.current_a = self.fw.current_ma / 1000.0
                 return ack
         raise RuntimeError(f"the firmware core did not acknowledge {p.MsgType(type_).name}")
@@ -376,6 +378,19 @@ class SimCurrentSource:
             self._stalled = stalled
 
 
+class _SimPendingRead:
+    """A simulated background reading: done once the clock reaches ``ready_s``."""
+
+    def __init__(self, sample: Sample, clock: SimClock, ready_s: float) -> None:
+        self._sample, self._clock, self._ready_s = sample, clock, ready_s
+
+    def done(self) -> bool:
+        return self._clock.now() >= self._ready_s
+
+    def result(self, timeout: float | None = None) -> Sample:
+        return self._sample
+
+
 class SimDisplacementSensor:
     """The displacement sensor, simulated: the plant's slider position, mm."""
 
@@ -393,18 +408,33 @@ class SimDisplacementSensor:
     def read_or_flag(self) -> Sample:
         """One reading at the clock's time; a flagged NaN sample while a failure is injected
         (a status-error failure keeps the position and sets ``FLAG_SENSOR_STATUS``)."""
+        sample, wait_s = self._reading()
+        if wait_s > 0:
+            self.clock.sleep(wait_s)  # the request waited for its answer
+            sample = dataclasses.replace(sample, t_s=self.clock.now())
+        return sample
+
+    def read_in_background(self) -> _SimPendingRead:
+        """The reading, done once the clock has passed its wait (a timed-out request's
+        ``timeout_s``); the clock is not held meanwhile."""
+        sample, wait_s = self._reading()
+        return _SimPendingRead(dataclasses.replace(sample, t_s=self.clock.now() + wait_s),
+                               self.clock, self.clock.now() + wait_s)  # fmt: skip
+
+    def _reading(self) -> tuple[Sample, float]:
+        """(the reading now, how long its request waits, s)."""
         self.reads += 1
         position = self.plant.position_mm()
         t = self.clock.now()
         if self._fail_left > 0 or t < self._fail_until_s:
             self._fail_left = max(self._fail_left - 1, 0)
             if self._fail_flag == FLAG_TIMEOUT and self.timeout_s > 0:
-                self.clock.sleep(self.timeout_s)  # the request waited for its answer
-                t = self.clock.now()
+                return Sample(math.nan, t, flags=FLAG_TIMEOUT, error="injected failure"), \
+                    self.timeout_s  # fmt: skip
             if self._fail_flag == FLAG_SENSOR_STATUS:
-                return Sample(position, t, flags=FLAG_SENSOR_STATUS, status=1)
-            return Sample(math.nan, t, flags=self._fail_flag, error="injected failure")
-        return Sample(position, t)
+                return Sample(position, t, flags=FLAG_SENSOR_STATUS, status=1), 0.0
+            return Sample(math.nan, t, flags=self._fail_flag, error="injected failure"), 0.0
+        return Sample(position, t), 0.0
 
     def fail(self, count: float = math.inf, flag: int = FLAG_TIMEOUT) -> None:
         """The next ``count`` readings fail with ``flag`` (inf: until :meth:`recover`)."""

@@ -29,6 +29,7 @@ driver's own (``t_device_ms``).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import sys
@@ -47,6 +48,7 @@ from smabench.drivers.base import (
     FLAG_TIMEOUT,
     CurrentSourceDevice,
     DisplacementDevice,
+    PendingRead,
     Sample,
 )
 from smabench.drivers.protocol import Flag, Telemetry
@@ -135,11 +137,11 @@ def _age_at(telemetry: Telemetry | None, now: float) -> float | None:
     return None if telemetry is None else max(0.0, now - telemetry.host_time)
 
 
-SENSOR_PROBE_WHILE_SILENT_S = 0.5
+SENSOR_PROBE_WHILE_SILENT_S = 0.1
 """While the displacement sensor does not answer (timeouts, a lost link) and the resistance
-estimate carries the control, the loop asks the sensor only this often, s (host clock): each
-request holds the loop for the Modbus timeout (50 ms: ten periods at 200 Hz), so the loop is
-held 10 % of the time instead of always, and the laser's return is seen within 0.5 s."""
+estimate carries the control, the loop asks it this often, s (host clock), in the background
+(:meth:`~smabench.drivers.base.DisplacementDevice.read_in_background`): each request waits the
+Modbus timeout (50 ms: ten periods at 200 Hz), which held the loop when it asked in line."""
 
 
 _SILENT_FLAGS = FLAG_TIMEOUT | FLAG_LINK_LOST
@@ -187,6 +189,7 @@ class BenchRuntime:
         self._stop = threading.Event()
         self._sensor_silent = False  # its last request timed out or found no link
         self._sensor_asked_at = -math.inf  # host clock of the last request
+        self._sensor_pending: PendingRead | None = None  # a request in the background
         self._abort_reason: str | None = None
         self._abort_cause = "host"
         self._thread: threading.Thread | None = None
@@ -296,6 +299,7 @@ class BenchRuntime:
 
     # ------------------------------------------------------------------ loop
     def _sensor_safe(self) -> None:
+        self._sensor_settled()
         try:
             self.sensor.make_safe()
         except Exception:  # make_safe must never stop the session's end
@@ -306,6 +310,7 @@ class BenchRuntime:
         the driver shows its output off and the current below :data:`OFF_CURRENT_A`, at most
         :data:`OFF_CONFIRM_S`; the events say what was seen or why it could not be. Returns
         the rows recorded and whether the driver was found lost (no telemetry)."""
+        self._sensor_settled()
         period_s = 1.0 / self.config.rate_hz
         mode = (last_row or {}).get("mode") or self.mode
         cycle = (last_row or {}).get("cycle") or 0
@@ -356,19 +361,41 @@ class BenchRuntime:
 
     def _read_sensor(self, now: float) -> Sample:
         """The sensor's reading for this tick. While it is silent (its last request timed out
-        or found no link) and the resistance estimate carries the control, it is asked only
-        every :data:`SENSOR_PROBE_WHILE_SILENT_S`: each request would hold the loop for the
-        Modbus timeout. Between, a NaN sample flagged link-lost, at once."""
-        if (self._sensor_silent and self.tick.estimate_carries
-                and now - self._sensor_asked_at < SENSOR_PROBE_WHILE_SILENT_S):  # fmt: skip
-            return Sample(math.nan, now, flags=FLAG_LINK_LOST,
-                          error="not asked: silent at its last request")  # fmt: skip
+        or found no link) and the resistance estimate carries the control, it is asked in the
+        background every :data:`SENSOR_PROBE_WHILE_SILENT_S`, so its timeouts never hold the
+        loop; the tick gets a NaN sample flagged link-lost meanwhile, and the request's own
+        reading once it is back."""
+        pending = self._sensor_pending
+        if pending is not None:
+            if not pending.done():
+                return self._not_asked(now)
+            self._sensor_pending = None
+            return self._took(pending.result())
+        if self._sensor_silent and self.tick.estimate_carries:
+            if now - self._sensor_asked_at >= SENSOR_PROBE_WHILE_SILENT_S:
+                self._sensor_asked_at = now
+                self._sensor_pending = self.sensor.read_in_background()
+            return self._not_asked(now)
         self._sensor_asked_at = now
-        sample = self.sensor.read_or_flag()
+        return self._took(self.sensor.read_or_flag())
+
+    @staticmethod
+    def _not_asked(now: float) -> Sample:
+        return Sample(math.nan, now, flags=FLAG_LINK_LOST, error="silent: asked in the background")
+
+    def _took(self, sample: Sample) -> Sample:
         self._sensor_silent = bool(int(sample.flags) & _SILENT_FLAGS) and not math.isfinite(
             sample.position_mm
         )
         return sample
+
+    def _sensor_settled(self) -> None:
+        """Wait for a background request before the sensor is used in line again (after the
+        session: the after-end rows, make_safe), at most its timeout and a margin."""
+        pending, self._sensor_pending = self._sensor_pending, None
+        if pending is not None:
+            with contextlib.suppress(Exception):
+                pending.result(timeout=2.0)
 
     def run(self) -> RunResult:
         """Run the session until the tick ends it; devices safe afterwards whatever happens."""

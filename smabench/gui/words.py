@@ -47,6 +47,13 @@ RULES: list[_Rule] = [
           r"LinkError",
           LOST_DRIVER),
     _rule(r"displacement sensor lost", LOST_SENSOR),
+    _rule(r"no valid reading for ([\d.]+) s; control goes on with the position from the wire's "
+          r"resistance",
+          lambda m: f"The laser gave no valid reading for {float(m.group(1)):.1f} s: control goes "
+          "on with the position from the wire's resistance until it is back."),
+    _rule(r"displacement sensor back after ([\d.]+) s",
+          lambda m: f"The laser is back after {float(m.group(1)):.1f} s: control on the laser "
+          "again."),
     _rule(r"runtime process (exited|is not running)|BrokenPipe", RUNTIME_DIED),
     _rule(r"mock bench (exited|did not become ready)",
           "The built-in mock bench could not start."),
@@ -129,6 +136,14 @@ def plain(text: str, limit: int = 240) -> str:
     if len(text) > limit:
         text = text[: limit - 1].rsplit(" ", 1)[0] + " …"
     return text if text.endswith((".", "…", "?", "!")) else text + "."
+
+
+GOOD_NEWS = re.compile(r"displacement sensor back after", re.IGNORECASE)
+
+
+def is_good_news(text: str) -> bool:
+    """Whether a runtime warning reports a fault that went away (not shown as an error)."""
+    return bool(GOOD_NEWS.search(str(text)))
 
 
 def device_lost(reason: str) -> bool:

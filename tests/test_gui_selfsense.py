@@ -22,7 +22,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 pytest.importorskip("pytestqt")
 
 from gui_support import FAST_MOCK_SPEED, SharedBench, last_to_use, start_running  # noqa: E402
-from PySide6 import QtCore  # noqa: E402
+from PySide6 import QtCore, QtWidgets  # noqa: E402
 from test_selfsense_run import CYCLES, PROBE_A, arrays, offline  # noqa: E402
 
 from smabench.gui.state import State  # noqa: E402
@@ -70,7 +70,10 @@ def win(qtbot, shared, tmp_path, request):
 def type_into(qtbot, field, text: str) -> None:
     field.setFocus()
     qtbot.keyClick(field, Qt.Key.Key_A, Qt.KeyboardModifier.ControlModifier)
-    qtbot.keyClicks(field, text)
+    if text:
+        qtbot.keyClicks(field, text)
+    else:
+        qtbot.keyClick(field, Qt.Key.Key_Backspace)
 
 
 def choose(field, value) -> None:
@@ -113,6 +116,8 @@ def test_the_fallback_is_shown_live_and_ends_when_the_laser_is_back(qtbot, win, 
     sensing(qtbot, w, cal_file, fallback="resistance")
     start_running(qtbot, w, lambda: qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton))
     assert w.selfsense_plots.isVisible()
+    places = {n: x.mapTo(w, QtCore.QPoint(0, 0)) for n, x in
+              (("tabs", w.tabs), ("message", w.message), ("start", w.start_button))}  # fmt: skip
     qtbot.waitUntil(lambda: np.isfinite(w.buffer.column("position_est_mm")).sum() > 200,
                     timeout=20000)  # fmt: skip
     assert "laser" in w.sensing_label.text() and "fallback" in w.sensing_label.text()
@@ -120,6 +125,9 @@ def test_the_fallback_is_shown_live_and_ends_when_the_laser_is_back(qtbot, win, 
     qtbot.waitUntil(lambda: "laser lost" in w.sensing_label.text().lower(), timeout=10000)
     on_estimate_text = w.sensing_label.text()
     assert "wire's resistance" in on_estimate_text, on_estimate_text
+    QtWidgets.QApplication.processEvents()
+    assert {n: x.mapTo(w, QtCore.QPoint(0, 0)) for n, x in
+            (("tabs", w.tabs), ("message", w.message), ("start", w.start_button))} == places
     qtbot.waitUntil(lambda: "resistance" in w.message.text(), timeout=5000)  # the runtime's word
     qtbot.waitUntil(lambda: "laser back" in w.sensing_label.text().lower(), timeout=15000)
     qtbot.waitUntil(lambda: "back after" in w.message.text(), timeout=5000)
@@ -151,6 +159,12 @@ def test_the_feedback_switches_live_only_with_a_calibration(qtbot, win, cal_file
     running session's feedback and every row after it is flagged."""
     w = win
     cycles(qtbot, w, 3, heat_s=60.0)
+    sensing(qtbot, w, cal_file.with_name("missing.json"))  # refused in one line, nothing runs
+    w.last_end = None
+    qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: "Not started" in w.message.text(), timeout=60000)
+    assert "calibration" in w.message.text() and w.state == State.IDLE, w.message.text()
+    print(f"\nmissing calibration: {w.message.text()!r}")
     sensing(qtbot, w, None)
     start_running(qtbot, w, lambda: qtbot.mouseClick(w.start_button, Qt.MouseButton.LeftButton))
     assert not w.fields["feedback"].isEnabled() and not w.selfsense_plots.isVisible()
@@ -177,3 +191,72 @@ def test_the_feedback_switches_live_only_with_a_calibration(qtbot, win, cal_file
     k = int(np.argmax(fb))
     print(f"\nlive switch at {s.data['t_s'][k]:.2f} s device time; {fb.sum()} rows after it")
     assert k > 100 and not fb[:k].any() and fb[k:].all()
+
+
+# ----------------------------------------------------------------------------- no bench
+def test_streamed_rows_carry_the_selfsense_columns_and_only_such_sessions_store_them():
+    from smabench.bench.remote import STREAM_COLUMNS as SENT
+    from smabench.gui.link import (
+        LINK_COLUMNS,
+        PLOT_COLUMNS,
+        SELFSENSE_PLOT_COLUMNS,
+        STREAM_COLUMNS,
+        SampleBuffer,
+        parse_rows,
+        select,
+    )
+    from smabench.sessions import format_row
+
+    assert SENT == STREAM_COLUMNS
+    plain = {"t_s": 1.0, "position_mm": 2.5, "flags": 0, "cycle": 1}
+    sensed = {"t_s": 1.005, "position_mm": None, "flags": FLAG_FEEDBACK_RESISTANCE
+              | FLAG_SENSOR_INVALID, "resistance_ohm": 0.512, "position_est_mm": 2.49}  # fmt: skip
+    old = format_row(plain).split(",")  # a runtime without the self-sensing cells
+    rows = parse_rows([format_row(plain, SENT), format_row(sensed, SENT), ",".join(old)])
+    col = {c: rows[:, i] for i, c in enumerate(LINK_COLUMNS)}
+    assert col["position_mm"][0] == 2.5 and np.isnan(col["position_mm"][1])
+    assert np.isnan(col["resistance_ohm"][[0, 2]]).all() and col["resistance_ohm"][1] == 0.512
+    assert col["position_est_mm"][1] == 2.49
+    assert col["feedback_resistance"].tolist() == [0.0, 1.0, 0.0]
+    buf = SampleBuffer(full_rows=2000, envelope_rows=1000, fold=8)
+    base = buf.nbytes
+    buf.clear(PLOT_COLUMNS + SELFSENSE_PLOT_COLUMNS)
+    buf.append_rows(select(rows, buf.columns))
+    assert buf.column("feedback_resistance").tolist() == [0.0, 1.0, 0.0]
+    assert buf.nbytes == base * len(buf.columns) // len(PLOT_COLUMNS)
+    buf.clear(PLOT_COLUMNS)  # a plain session after it: the eight columns' memory again
+    assert buf.nbytes == base and not buf.has("position_est_mm")
+    # bounded with the wider columns too: a long run folds as before
+    many = np.tile(select(rows, PLOT_COLUMNS + SELFSENSE_PLOT_COLUMNS), (4000, 1))
+    many[:, 0] = np.arange(many.shape[0]) * 0.005
+    buf.clear(PLOT_COLUMNS + SELFSENSE_PLOT_COLUMNS)
+    buf.append_rows(many)
+    assert buf.total == 12000 and buf.n <= 2000 + 1000 + 333
+    assert np.nanmax(buf.column("feedback_resistance")) == 1.0  # the envelope keeps the stretch
+
+
+def test_the_loops_warnings_in_plain_words():
+    from smabench.gui import words
+
+    lost = ("displacement sensor: no valid reading for 0.31 s; control goes on with the position "
+            "from the wire's resistance (rows flagged feedback_resistance; the session ends if "
+            "the laser stays away 120 s)")  # fmt: skip
+    back = "displacement sensor back after 1.52 s: control on the laser again"
+    assert words.plain(lost) == ("The laser gave no valid reading for 0.3 s: control goes on "
+                                 "with the position from the wire's resistance until it is "
+                                 "back.")  # fmt: skip
+    assert words.plain(back) == "The laser is back after 1.5 s: control on the laser again."
+    assert words.is_good_news(back) and not words.is_good_news(lost)
+
+
+def test_a_start_within_the_same_second_gets_a_folder_of_its_own(tmp_path):
+    from smabench.bench.remote import unused_session_id
+    from smabench.bench.session_run import RunSettings
+
+    s = RunSettings(load_kg=2.0, out_dir=tmp_path)
+    first = unused_session_id(s)
+    (tmp_path / first).mkdir()
+    second = unused_session_id(s)
+    if second.rsplit("-", 1)[0] == first:  # (the clock's second did not move on meanwhile)
+        assert second == f"{first}-2"
+    assert not (tmp_path / second).exists()

@@ -48,6 +48,7 @@ import queue
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
@@ -231,7 +232,7 @@ class BenchServer:
     def _start_session(self, settings_cfg: dict[str, Any], estops_before: int) -> None:
         settings = settings_from_json(settings_cfg)
         if settings.session_id is None:  # the folder is named now, so the GUI can show it
-            settings.session_id = settings.folder().name
+            settings.session_id = unused_session_id(settings)
         settings.validate(device_limit_a=self.source.info.hard_limit_a)
         self.source.clear_faults()
         if settings.controller is not None:  # the controller is the command; no pause
@@ -435,6 +436,17 @@ class BenchServer:
                 dev.close()
         if self.mock is not None:
             self.mock.close()
+
+
+def unused_session_id(settings: RunSettings) -> str:
+    """The session folder's name from the time, protocol and load, with ``-2``, ``-3``… when a
+    session of the same second has it already (a Stop and a Start within one second)."""
+    base = settings.folder().name
+    sid, n = base, 1
+    while (Path(settings.out_dir) / sid).exists():
+        n += 1
+        sid = f"{base}-{n}"
+    return sid
 
 
 class _NoticeHandler(logging.Handler):

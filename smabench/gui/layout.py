@@ -189,7 +189,10 @@ class WindowLayout:
         # beside the readouts (its place is there, blank without self-sensing): where the
         # controller's position comes from, the fallback on the wire's resistance and its end
         self.sensing_label = QtWidgets.QLabel("")
-        self.sensing_label.setWordWrap(True)
+        # one line that never widens the window nor moves what is below it (the tooltip has
+        # the whole sentence)
+        self.sensing_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored,
+                                         QtWidgets.QSizePolicy.Policy.Preferred)  # fmt: skip
         self.sensing_label.setTextInteractionFlags(
             QtCore.Qt.TextInteractionFlag.TextSelectableByMouse
         )

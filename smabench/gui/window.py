@@ -700,25 +700,37 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         lbl = self.sensing_label
         if not self.session_selfsense:
             lbl.setText("")
+            lbl.setToolTip("")
             lbl.setStyleSheet("")
             return
         style = "color: #1a4f8a;"
         if self._feedback_chosen == "resistance":
-            text = "Position feedback: the wire's resistance (chosen)."
+            text = "Position from the wire's resistance (chosen)."
+            tip = ("The controller's position is the one estimated from the wire's resistance, "
+                   "as chosen; the laser's is recorded beside it.")
             style = "color: #1a4f8a; font-weight: bold;"
         elif self._on_estimate and self._fallback_since_t is not None:
-            text = (f"LASER LOST at {self._fallback_since_t:.1f} s: control runs on the position "
-                    "from the wire's resistance (fallback) until the laser is back.")
+            text = (f"LASER LOST at {self._fallback_since_t:.1f} s: position from the wire's "
+                    "resistance (fallback).")
+            tip = ("The laser gives no valid reading: the control goes on with the position "
+                   "estimated from the wire's resistance until the laser is back (the rows are "
+                   "flagged; the session ends if the laser stays away too long).")
             style = "color: #c62828; font-weight: bold;"
         elif self._laser_back is not None:
             t, gap = self._laser_back
-            text = (f"Laser back at {t:.1f} s after {gap:.1f} s on the wire's resistance: "
-                    "control on the laser again.")
+            text = f"Laser back at {t:.1f} s, after {gap:.1f} s on the wire's resistance."
+            tip = ("The laser reads again: the control is back on it (times in the session's "
+                   "own seconds).")
             style = "color: #1b5e20; font-weight: bold;"
         else:
-            text = "Position feedback: laser" + (
-                "; fallback on the wire's resistance armed."
-                if self._session_fallback == "resistance" else "; no fallback.")  # fmt: skip
+            armed = self._session_fallback == "resistance"
+            text = "Position from the laser; " + ("fallback: the wire's resistance." if armed
+                                                  else "no fallback.")  # fmt: skip
+            tip = ("The controller's position is the laser's; the one estimated from the wire's "
+                   "resistance is recorded and plotted beside it" + (
+                       ", and takes over while the laser gives no valid reading." if armed
+                       else "."))  # fmt: skip
+        lbl.setToolTip(tip)
         lbl.setText(text)
         lbl.setStyleSheet(style)
 

@@ -242,11 +242,14 @@ def test_the_loops_warnings_in_plain_words():
             "from the wire's resistance (rows flagged feedback_resistance; the session ends if "
             "the laser stays away 120 s)")  # fmt: skip
     back = "displacement sensor back after 1.52 s: control on the laser again"
-    assert words.plain(lost) == ("The laser gave no valid reading for 0.3 s: control goes on "
-                                 "with the position from the wire's resistance until it is "
-                                 "back.")  # fmt: skip
-    assert words.plain(back) == "The laser is back after 1.5 s: control on the laser again."
-    assert words.is_good_news(back) and not words.is_good_news(lost)
+    assert words.sensing_notice(lost) == ("The laser gave no valid reading for 0.3 s: control "
+                                          "goes on with the position from the wire's resistance "
+                                          "until it is back.", False)  # fmt: skip
+    assert words.sensing_notice(back) == ("The laser is back after 1.5 s: control on the laser "
+                                          "again.", True)  # fmt: skip
+    # the loop's other warnings are not the sensing line's (a lost driver is the status's)
+    assert words.sensing_notice("current driver reports telemetry lost; the output is on, the "
+                                "session goes on") is None  # fmt: skip
 
 
 def test_a_start_within_the_same_second_gets_a_folder_of_its_own(tmp_path):

@@ -508,6 +508,8 @@ def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
                 break
     finally:
         server.close()
+        for name in NOTICE_LOGGERS:
+            logging.getLogger(name).removeHandler(notices)
         emit.line("Q", {"reason": "closed"})
         emit.close()
     return 0

@@ -735,12 +735,16 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         lbl.setStyleSheet(style)
 
     def _on_notice(self, text: str) -> None:
-        """A warning of the session's loop (``W``): on the message line, in plain words (an
-        E-STOP's message stays)."""
-        if not text or self.state == State.ESTOPPED:
-            return
+        """A warning of the session's loop (``W``): the position feedback's (the fallback on
+        the wire's resistance, the laser back) on the message line in plain words, unless an
+        E-STOP's message is there; any other only in the log (a lost device or a trip is
+        decided from the status and the session's end, in one place)."""
         log.info("runtime warning: %s", text)
-        self.say(words.plain(text), error=not words.is_good_news(text))
+        said = words.sensing_notice(text)
+        if said is None or self.state not in (State.RUNNING, State.PAUSED):
+            return
+        sentence, good = said
+        self.say(sentence, error=not good)
 
     def _live_controller(self) -> bool:
         return (self.state in (State.RUNNING, State.PAUSED) and self.session_controller
@@ -837,6 +841,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             if st.get("command") == "start" or self.state == State.STARTING:
                 self._fresh_session = False  # a refused start leaves the plots as they were
                 self._plan_s = None
+                self.session_selfsense = not self.selfsense_plots.isHidden()  # the shown one's
+                self._show_sensing()
                 self.fire("refused")
                 self.say(f"Not started: {text}", error=True)
             elif self.state != State.ESTOPPED:

@@ -47,13 +47,6 @@ RULES: list[_Rule] = [
           r"LinkError",
           LOST_DRIVER),
     _rule(r"displacement sensor lost", LOST_SENSOR),
-    _rule(r"no valid reading for ([\d.]+) s; control goes on with the position from the wire's "
-          r"resistance",
-          lambda m: f"The laser gave no valid reading for {float(m.group(1)):.1f} s: control goes "
-          "on with the position from the wire's resistance until it is back."),
-    _rule(r"displacement sensor back after ([\d.]+) s",
-          lambda m: f"The laser is back after {float(m.group(1)):.1f} s: control on the laser "
-          "again."),
     _rule(r"runtime process (exited|is not running)|BrokenPipe", RUNTIME_DIED),
     _rule(r"mock bench (exited|did not become ready)",
           "The built-in mock bench could not start."),
@@ -138,12 +131,28 @@ def plain(text: str, limit: int = 240) -> str:
     return text if text.endswith((".", "…", "?", "!")) else text + "."
 
 
-GOOD_NEWS = re.compile(r"displacement sensor back after", re.IGNORECASE)
+SENSING_RULES: list[_Rule] = [
+    _rule(r"no valid reading for ([\d.]+) s; control goes on with the position from the wire's "
+          r"resistance",
+          lambda m: f"The laser gave no valid reading for {float(m.group(1)):.1f} s: control goes "
+          "on with the position from the wire's resistance until it is back."),
+    _rule(r"displacement sensor back after ([\d.]+) s",
+          lambda m: f"The laser is back after {float(m.group(1)):.1f} s: control on the laser "
+          "again."),
+]
+"""The session loop's warnings about the position feedback (the fallback on the wire's
+resistance and its end), in the operator's words; the second is good news."""
 
 
-def is_good_news(text: str) -> bool:
-    """Whether a runtime warning reports a fault that went away (not shown as an error)."""
-    return bool(GOOD_NEWS.search(str(text)))
+def sensing_notice(text: str) -> tuple[str, bool] | None:
+    """(the operator's sentence, whether it is good news) for a loop warning about the
+    position feedback; None for any other warning (the window decides those elsewhere: a lost
+    device from the status, a trip from the session's end)."""
+    for k, (pattern, fn) in enumerate(SENSING_RULES):
+        m = pattern.search(str(text))
+        if m:
+            return fn(m), k == 1
+    return None
 
 
 def device_lost(reason: str) -> bool:

@@ -130,7 +130,7 @@ def test_the_fallback_is_shown_live_and_ends_when_the_laser_is_back(qtbot, win, 
             (("tabs", w.tabs), ("message", w.message), ("start", w.start_button))} == places
     qtbot.waitUntil(lambda: "resistance" in w.message.text(), timeout=5000)  # the runtime's word
     qtbot.waitUntil(lambda: "laser back" in w.sensing_label.text().lower(), timeout=15000)
-    qtbot.waitUntil(lambda: "back after" in w.message.text(), timeout=5000)
+    qtbot.waitUntil(lambda: "laser is back" in w.message.text(), timeout=5000)
     assert w.state == State.RUNNING, (w.state, w.message.text())
     back_text, back_message = w.sensing_label.text(), w.message.text()
     # the plots: R against the laser's position, laser and estimate against time
@@ -242,11 +242,11 @@ def test_the_loops_warnings_in_plain_words():
             "from the wire's resistance (rows flagged feedback_resistance; the session ends if "
             "the laser stays away 120 s)")  # fmt: skip
     back = "displacement sensor back after 1.52 s: control on the laser again"
-    assert words.sensing_notice(lost) == ("The laser gave no valid reading for 0.3 s: control "
-                                          "goes on with the position from the wire's resistance "
-                                          "until it is back.", False)  # fmt: skip
-    assert words.sensing_notice(back) == ("The laser is back after 1.5 s: control on the laser "
-                                          "again.", True)  # fmt: skip
+    assert words.sensing_notice(lost) == ("The laser gives no valid reading: control goes on "
+                                          "with the position from the wire's resistance until "
+                                          "it is back.", False)  # fmt: skip
+    assert words.sensing_notice(back) == ("The laser is back: control on the laser again.",
+                                          True)  # fmt: skip
     # the loop's other warnings are not the sensing line's (a lost driver is the status's)
     assert words.sensing_notice("current driver reports telemetry lost; the output is on, the "
                                 "session goes on") is None  # fmt: skip
@@ -263,3 +263,20 @@ def test_a_start_within_the_same_second_gets_a_folder_of_its_own(tmp_path):
     if second.rsplit("-", 1)[0] == first:  # (the clock's second did not move on meanwhile)
         assert second == f"{first}-2"
     assert not (tmp_path / second).exists()
+
+
+def test_the_calibration_is_chosen_with_its_button_and_the_four_settings_are_shown(qtbot, win,
+                                                                                   cal_file):
+    w = win
+    w.settings_tabs.setCurrentIndex(0)
+    for key in ("probe_current_a", "selfsense", "feedback", "fallback"):
+        assert w.fields[key].isVisibleTo(w), key
+    assert w.fields["feedback"].setting.live  # switchable in a run, as the schema says
+    qtbot.mouseClick(w.selfsense_browse, Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: w._dialog.isVisible(), timeout=5000)
+    w._dialog.selectFile(str(cal_file))
+    w._dialog.accept()
+    assert w.fields["selfsense"].text() == str(cal_file) and not w.fields["selfsense"].error()
+    settings = w.settings_dict()
+    assert settings["selfsense"] == str(cal_file)
+    assert "feedback" not in settings and "fallback" not in settings  # the defaults: left out

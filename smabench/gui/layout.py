@@ -246,8 +246,8 @@ class WindowLayout:
 
     def _selfsense_rows(self, form: QtWidgets.QFormLayout) -> None:
         """Position from the wire's resistance (issue 26): the probe current, the calibration
-        file (typed, or chosen with Browse), the fallback and the feedback (live in a session
-        with a calibration)."""
+        file (typed, or chosen with its "…" button), the fallback and the feedback (live in a
+        session with a calibration)."""
         head = QtWidgets.QLabel("Position from the wire's resistance")
         head.setStyleSheet("font-weight: bold; margin-top: 6px;")
         form.addRow(head)
@@ -258,7 +258,8 @@ class WindowLayout:
                 self._add_field(form, setting)
                 continue
             field = self._field(setting)
-            browse = QtWidgets.QPushButton("Browse…")
+            browse = QtWidgets.QPushButton("…")  # narrow: the panel is narrow
+            browse.setMaximumWidth(30)
             browse.setToolTip("Choose a calibration file (from smabench selfsense calibrate)")
             browse.clicked.connect(self.choose_selfsense_file)
             self.selfsense_row = QtWidgets.QWidget()

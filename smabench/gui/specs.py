@@ -23,7 +23,7 @@ HIDDEN = {
 }
 SELFSENSE_KEYS = ("probe_current_a", "selfsense", "feedback", "fallback")
 """Resistance sensing (issue 26, schema group ``loop``): shown under their own heading; the
-calibration file with a Browse button; ``feedback`` switches live in a session with a
+calibration file with a button to choose it; ``feedback`` switches live in a session with a
 calibration."""
 GAIN_LAWS = tuple((law, gs.label, gs.units) for law, gs in GAIN_SETS.items())
 

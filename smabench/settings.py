@@ -537,13 +537,14 @@ _TABLE: list[Setting] = [
             "while it cools; its heat is part of the session (0: off).", "loop", unit="A",
             default=0.0, min=0.0, max=PROBE_MAX_A, decimals=3, step=0.01),
     Setting("selfsense", "self-sense calibration", "Calibration JSON from `smabench selfsense "
-            "calibrate`: every tick estimates the position from the wire's resistance (columns "
-            "resistance_ohm, position_est_mm; the calibration goes into session.json).", "loop",
+            "calibrate`: every tick estimates the position from the wire's resistance (two more "
+            "columns: the resistance in ohm and the estimated position in mm; the calibration "
+            "goes into session.json).", "loop",
             kind="text", optional=True, none_text="none: no estimate", metavar="CAL.json"),
     Setting("feedback", "position feedback", "The controller's measured position: the laser's, "
             "or the one estimated from the wire's resistance (needs a self-sense calibration "
             "and a probe current).", "loop", kind="choice", default="laser",
-            choices=FEEDBACK_SOURCES),
+            choices=FEEDBACK_SOURCES, live=True),
     Setting("fallback", "feedback fallback", "While the laser's reading is invalid or the "
             "sensor does not answer, control on the position estimated from the wire's "
             "resistance (flagged rows; needs a self-sense calibration and a probe current).",

@@ -124,7 +124,8 @@ def _entry_widgets(w: MainWindow) -> dict[str, QtWidgets.QWidget]:
     out.update({f"gain_table:{law}": b for law, b in w.gain_table_boxes.items()})
     out.update(protocol=w.protocol, fit_model=w.fit_model, fit_cycle=w.fit_cycle,
                use_mock=w.use_mock, use_real=w.use_real, mock_effect=w.mock_effect,
-               mock_thermocouple=w.mock_thermocouple)  # fmt: skip
+               mock_thermocouple=w.mock_thermocouple,
+               mock_resistivity=w.mock_resistivity)  # fmt: skip
     return out
 
 

@@ -9,10 +9,15 @@ Start: ``python -m smabench.bench.remote DEVICES_JSON`` with ``{"mock": [mock ar
 
 Out (stdout), one line each:
 - ``P <json>``: the ports and device info once connected;
-- ``R <csv row>``: one sample, columns as ``samples.csv``, batched every ~30 ms;
+- ``R <csv row>``: one sample, columns as ``samples.csv`` with the self-sensing columns after
+  them (``resistance_ohm``, ``position_est_mm``: empty without a self-sense calibration),
+  batched every ~30 ms;
 - ``S <json>``: status twice a second (link health, ``readout``: the latest current, position,
-  temperature, also while idle; phase, cycle, progress while running), ``started`` (the session
+  temperature, also while idle; phase, cycle, progress, ``feedback`` (``laser`` or
+  ``resistance``, the controller's position source now) while running), ``started`` (the session
   folder) when a start was accepted, or an ``error`` for a refused command;
+- ``W <json>``: a warning of the running session's loop (``{"text": …}``), as it logs it: e.g.
+  the control falling back on the position from the wire's resistance, and the laser back;
 - ``X <json>``: after an ``estop``, what the driver's telemetry showed: when the command arrived
   (``received_t``), when the output-off frame arrived (``output_off_t``) and when the measured
   current fell below 20 mA (``current_off_t``), all ``time.monotonic()`` (one clock for every
@@ -24,8 +29,12 @@ shape, see ``values_from_mapping``), ``estop [INPUT_T [SOURCE]]`` (the input eve
 ``time.monotonic()`` and what it was, for the session's event log), ``stop``, ``pause``,
 ``resume``, ``mode NAME``,
 ``gains KP KI KD [LAW]`` (LAW: ``pid``, ``ffpid`` or ``ffpid_hold``), ``open_current A`` (the
-current held when switched to open loop), ``quit``. ``estop`` is obeyed on the reading thread at
-once, whatever another command is doing. EOF on stdin (the GUI died) e-stops and closes everything.
+current held when switched to open loop), ``feedback laser|resistance`` (the controller's
+position source, live; resistance needs the session's self-sense calibration), ``mock COMMAND``
+(the mock bench's fault injection, ``smabench mock --control-stdin``'s commands, e.g.
+``sensor-drop 1.5``; refused on real devices), ``quit``. ``estop`` is obeyed on the reading
+thread at once, whatever another command is doing. EOF on stdin (the GUI died) e-stops and
+closes everything.
 """
 
 from __future__ import annotations
@@ -39,6 +48,7 @@ import queue
 import sys
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from smabench.bench.headless import MockProcess, open_devices
@@ -46,13 +56,17 @@ from smabench.bench.priority import normal_thread, raise_priority, realtime_proc
 from smabench.bench.session_run import RunSettings, run_session
 from smabench.drivers.protocol import Flag
 from smabench.protocols import Protocol
-from smabench.sessions import format_row
+from smabench.sessions import format_row, session_columns
 from smabench.settings import values_from_mapping
 
 log = logging.getLogger(__name__)
 
 BATCH_S = 0.03
 STATUS_S = 0.5
+STREAM_COLUMNS = session_columns(selfsense=True)
+"""The cells of an ``R`` line (the self-sensing ones empty in a session without them)."""
+NOTICE_LOGGERS = ("smabench.bench.tick",)
+"""Loggers whose warnings go to the GUI as ``W`` lines (the session loop's)."""
 
 
 class PausableCommand:
@@ -104,6 +118,7 @@ class _Emitter:
     def __init__(self, out) -> None:
         self.out = out
         self.rows: queue.SimpleQueue[dict | None] = queue.SimpleQueue()
+        self.notices: queue.SimpleQueue[str] = queue.SimpleQueue()  # W lines, after the rows
         self._lock = threading.Lock()
         self.gone = False  # the reader closed its end
         self._thread = threading.Thread(target=self._run, name="emit", daemon=True)
@@ -137,9 +152,18 @@ class _Emitter:
                 if row is None:
                     done = True
                     break
-                batch.append("R " + format_row(row))
+                batch.append("R " + format_row(row, STREAM_COLUMNS))
+            while True:  # a notice follows the rows before it (the loop never writes here)
+                try:
+                    batch.append("W " + json.dumps({"text": self.notices.get_nowait()}))
+                except queue.Empty:
+                    break
             if batch:
                 self._write("\n".join(batch) + "\n")
+
+    def notice(self, text: str) -> None:
+        """A ``W`` line with the next batch (any thread; never blocks)."""
+        self.notices.put(text)
 
     def flush_rows(self) -> None:
         """Wait until the rows queued so far are written (before an end line)."""
@@ -208,7 +232,7 @@ class BenchServer:
     def _start_session(self, settings_cfg: dict[str, Any], estops_before: int) -> None:
         settings = settings_from_json(settings_cfg)
         if settings.session_id is None:  # the folder is named now, so the GUI can show it
-            settings.session_id = settings.folder().name
+            settings.session_id = unused_session_id(settings)
         settings.validate(device_limit_a=self.source.info.hard_limit_a)
         self.source.clear_faults()
         if settings.controller is not None:  # the controller is the command; no pause
@@ -321,11 +345,18 @@ class BenchServer:
                 if self.command is not None:
                     raise ValueError("gains are for a position reference under a controller")
                 self.protocol.set_gains(*map(float, args[:3]), law=law)
+            elif cmd == "feedback" and rt is not None:
+                rt.set_feedback(rest.strip())
+            elif cmd == "mock":
+                if self.mock is None:
+                    raise ValueError("mock commands are for the built-in mock bench")
+                self.mock.send(rest.strip())
             elif cmd == "open_current" and rt is not None:
                 if self.command is not None:
                     raise ValueError("the open-loop current is for a controller session")
                 self.protocol.set_open_loop_current(float(rest))
-            elif cmd not in ("stop", "pause", "resume", "mode", "gains", "open_current"):
+            elif cmd not in ("stop", "pause", "resume", "mode", "gains", "open_current",
+                             "feedback"):  # fmt: skip
                 raise ValueError(f"unknown command {cmd!r}")
             else:
                 raise ValueError(f"{cmd}: no session running")
@@ -357,6 +388,9 @@ class BenchServer:
                 progress=progress,
                 mode=getattr(self.runtime, "mode", "open_loop"),
             )
+            tick = getattr(self.runtime, "tick", None)
+            if tick is not None:
+                st["feedback"] = tick.feedback
         return st
 
     def readout(self) -> dict[str, float | None]:
@@ -404,6 +438,29 @@ class BenchServer:
             self.mock.close()
 
 
+def unused_session_id(settings: RunSettings) -> str:
+    """The session folder's name from the time, protocol and load, with ``-2``, ``-3``… when a
+    session of the same second has it already (a Stop and a Start within one second)."""
+    base = settings.folder().name
+    sid, n = base, 1
+    while (Path(settings.out_dir) / sid).exists():
+        n += 1
+        sid = f"{base}-{n}"
+    return sid
+
+
+class _NoticeHandler(logging.Handler):
+    """The session loop's warnings to the GUI too (``W`` lines; queued, the loop never waits)."""
+
+    def __init__(self, emit: _Emitter) -> None:
+        super().__init__(logging.WARNING)
+        self.emit_to = emit
+
+    def emit(self, record: logging.LogRecord) -> None:
+        with contextlib.suppress(Exception):
+            self.emit_to.notice(record.getMessage())
+
+
 def parse_estop(rest: str) -> tuple[float | None, str]:
     """``estop [INPUT_T [SOURCE…]]``'s arguments: the input event's ``time.monotonic()``
     (s; absent or not a finite number: None) and its source words."""
@@ -428,6 +485,9 @@ def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
         emit.close()
         return 2
     realtime_process()  # after the mock process was started: it keeps normal scheduling
+    notices = _NoticeHandler(emit)
+    for name in NOTICE_LOGGERS:
+        logging.getLogger(name).addHandler(notices)
     emit.line("P", {"driver": server.port, "sensor": server.spec, "device": server.info,
                     "mock_pid": server.mock.proc.pid if server.mock else None})  # fmt: skip
     threading.Thread(target=server.status_loop, name="status", daemon=True).start()
@@ -448,6 +508,8 @@ def serve(devices_cfg: dict[str, Any], stdin=None, stdout=None) -> int:
                 break
     finally:
         server.close()
+        for name in NOTICE_LOGGERS:
+            logging.getLogger(name).removeHandler(notices)
         emit.line("Q", {"reason": "closed"})
         emit.close()
     return 0

@@ -12,15 +12,25 @@ from smabench import settings as schema
 from smabench.gui import words
 from smabench.gui.estop import KEY_NAMES
 from smabench.gui.fields import Field, NoWheelCombo, ValueField, label_for, make_field
-from smabench.gui.plots import LoopPlot, TimePlots
+from smabench.gui.plots import LoopPlot, SelfSensePlots, TimePlots
 from smabench.gui.sessions_view import ReplayView
-from smabench.gui.specs import CONNECTION, FIT_CYCLE, OPEN_LOOP_CURRENT, mode_uses, shown
+from smabench.gui.specs import (
+    CONNECTION,
+    FIT_CYCLE,
+    OPEN_LOOP_CURRENT,
+    SELFSENSE_KEYS,
+    mode_uses,
+    shown,
+)
 from smabench.gui.state import IN_SESSION
 from smabench.gui.trends import TrendPlots
 from smabench.settings import GAIN_SETS, PROTOCOL_NAMES, Setting
 
 MODES = (("open_loop", "Open loop"), ("pid", "PID"), ("ff", "FF"), ("ffpid", "FF+PID"))
 MODELS = ("1", "2", "sigmoid", "preisach")
+MOCK_RESISTIVITY = (("plant's two-phase", ""), ("flexinol", "flexinol"),
+                    ("flexinol-rphase", "flexinol-rphase"))  # fmt: skip
+"""The mock's wire-resistance models (``smabench mock --resistivity``): label, value."""
 BANNER_HEIGHT = 40  # px, reserved whether the banner shows or not
 MESSAGE_HEIGHT = 36  # px: two lines
 
@@ -54,10 +64,17 @@ class WindowLayout:
         self.loop_plot = LoopPlot()
         self.time_plots = TimePlots()
         # side by side: the three stacked time plots get the tab's whole height
-        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
-        live.addWidget(self.loop_plot)
-        live.addWidget(self.time_plots)
-        live.setSizes([400, 600])
+        top = QtWidgets.QSplitter(QtCore.Qt.Orientation.Horizontal)
+        top.addWidget(self.loop_plot)
+        top.addWidget(self.time_plots)
+        top.setSizes([400, 600])
+        # below them, only in a session with a self-sense calibration: R and the estimate
+        self.selfsense_plots = SelfSensePlots(self.time_plots.p_current)
+        self.selfsense_plots.setVisible(False)
+        live = QtWidgets.QSplitter(QtCore.Qt.Orientation.Vertical)
+        live.addWidget(top)
+        live.addWidget(self.selfsense_plots)
+        live.setSizes([600, 300])
         self.replay = ReplayView()
         self.tabs = QtWidgets.QTabWidget()
         self.tabs.addTab(live, "Live")
@@ -169,7 +186,20 @@ class WindowLayout:
         v.addLayout(msgs)
         self.readout = QtWidgets.QLabel("readouts: not connected")
         self.readout.setStyleSheet("color: #333;")
-        v.addWidget(self.readout)
+        # beside the readouts (its place is there, blank without self-sensing): where the
+        # controller's position comes from, the fallback on the wire's resistance and its end
+        self.sensing_label = QtWidgets.QLabel("")
+        # one line that never widens the window nor moves what is below it (the tooltip has
+        # the whole sentence)
+        self.sensing_label.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored,
+                                         QtWidgets.QSizePolicy.Policy.Preferred)  # fmt: skip
+        self.sensing_label.setTextInteractionFlags(
+            QtCore.Qt.TextInteractionFlag.TextSelectableByMouse
+        )
+        readouts = QtWidgets.QHBoxLayout()
+        readouts.addWidget(self.readout, 3)
+        readouts.addWidget(self.sensing_label, 2)
+        v.addLayout(readouts)
         return bar
 
     def show_banner(self, on: bool, text: str = "") -> None:
@@ -208,9 +238,38 @@ class WindowLayout:
         for setting in shown("protocol"):
             self._add_field(form, setting)
         for setting in shown("loop"):
-            self._add_field(form, setting)
+            if setting.key not in SELFSENSE_KEYS:
+                self._add_field(form, setting)
+        self._selfsense_rows(form)
         self.load_field.changed.connect(self._show_table_gains)
         return w
+
+    def _selfsense_rows(self, form: QtWidgets.QFormLayout) -> None:
+        """Position from the wire's resistance (issue 26): the probe current, the calibration
+        file (typed, or chosen with its "…" button), the fallback and the feedback (live in a
+        session with a calibration)."""
+        head = QtWidgets.QLabel("Position from the wire's resistance")
+        head.setStyleSheet("font-weight: bold; margin-top: 6px;")
+        form.addRow(head)
+        by_key = {s.key: s for s in shown("loop")}
+        for key in SELFSENSE_KEYS:
+            setting = by_key[key]
+            if key != "selfsense":
+                self._add_field(form, setting)
+                continue
+            field = self._field(setting)
+            browse = QtWidgets.QPushButton("…")  # narrow: the panel is narrow
+            browse.setMaximumWidth(30)
+            browse.setToolTip("Choose a calibration file (from smabench selfsense calibrate)")
+            browse.clicked.connect(self.choose_selfsense_file)
+            self.selfsense_row = QtWidgets.QWidget()
+            row = QtWidgets.QHBoxLayout(self.selfsense_row)
+            row.setContentsMargins(0, 0, 0, 0)
+            row.addWidget(field, 1)
+            row.addWidget(browse)
+            self.selfsense_browse = browse
+            form.addRow(label_for(setting), self.selfsense_row)
+        self.fields["feedback"].changed.connect(self.feedback_chosen)
 
     def _limits_panel(self) -> QtWidgets.QWidget:
         w, form = self._form_panel()
@@ -291,6 +350,13 @@ class WindowLayout:
         form.addRow("plant effect", self.mock_effect)
         self.mock_thermocouple = QtWidgets.QCheckBox("thermocouple on the wire (measured °C)")
         form.addRow(self.mock_thermocouple)
+        self.mock_resistivity = NoWheelCombo()
+        for label, value in MOCK_RESISTIVITY:
+            self.mock_resistivity.addItem(label, value)
+        self.mock_resistivity.setToolTip(
+            "The mock wire's resistance: the plant's two-phase one, or a resistivity model "
+            "(what the wire voltage, and so resistance sensing, sees)")
+        form.addRow("wire resistance", self.mock_resistivity)
         self.serial_port = NoWheelCombo()
         self.serial_port.setEditable(True)
         refresh = QtWidgets.QPushButton("↻")
@@ -403,6 +469,7 @@ class WindowLayout:
         f.setRowVisible(self.mock_speed, mock)
         f.setRowVisible(self.mock_effect, mock)
         f.setRowVisible(self.mock_thermocouple, mock)
+        f.setRowVisible(self.mock_resistivity, mock)
         for wdg in (self.port_row, self.sensor_kind, self.sensor_unit, self.sensor_map):
             f.setRowVisible(wdg, not mock)
         for wdg in (self.sensor_host, self.sensor_tcp_port):

@@ -3,7 +3,9 @@
 :class:`RuntimeLink` starts the process, parses what it prints on a reader thread and queues it;
 the GUI drains :meth:`RuntimeLink.poll` from its timer. :class:`SampleBuffer` keeps the streamed
 samples in bounded numpy columns: the newest 0.5–1 h at 200 Hz at full resolution, everything
-older as a min–max envelope (memory bounded whatever the session's length).
+older as a min–max envelope (memory bounded whatever the session's length). A session with a
+self-sense calibration (issue 26) has three more columns, :data:`SELFSENSE_PLOT_COLUMNS`; the
+others keep the eight columns of :data:`PLOT_COLUMNS` and their memory.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from smabench.sessions import COLUMNS
+from smabench.sessions import FLAG_FEEDBACK_RESISTANCE, session_columns
 
 log = logging.getLogger(__name__)
 
@@ -29,13 +31,23 @@ PLOT_COLUMNS = (
     "t_s", "current_set_A", "current_A", "position_mm", "setpoint_mm", "temperature_est_C",
     "cycle", "temperature_C",
 )  # fmt: skip
+SELFSENSE_PLOT_COLUMNS = ("resistance_ohm", "position_est_mm", "feedback_resistance")
+"""A self-sensing session's further columns: the wire's resistance (Ω), the position estimated
+from it (mm), and 1 on rows the controller ran on that estimate (the ``flags`` column's
+``FLAG_FEEDBACK_RESISTANCE``), else 0."""
+LINK_COLUMNS = PLOT_COLUMNS + SELFSENSE_PLOT_COLUMNS
+"""The columns :func:`parse_rows` gives (NaN where a row has none)."""
+STREAM_COLUMNS = session_columns(selfsense=True)
+"""The cells of a streamed row (``R`` line): ``samples.csv``'s columns with the self-sensing
+ones after them (empty without a calibration)."""
 FULL_ROWS = 720_000
 """Rows kept at full resolution by :class:`SampleBuffer` (1 h at 200 Hz)."""
 ENVELOPE_ROWS = 400_000
 """Envelope rows (older data, min–max) before the envelope is folded 2:1."""
 FOLD = 16
 """Full-resolution rows per envelope pair when the older half is folded."""
-_INDEX = {c: COLUMNS.index(c) for c in PLOT_COLUMNS}
+_INDEX = {c: STREAM_COLUMNS.index(c) for c in LINK_COLUMNS if c in STREAM_COLUMNS}
+_FLAGS = STREAM_COLUMNS.index("flags")
 
 
 class SampleBuffer:
@@ -48,14 +60,17 @@ class SampleBuffer:
     minimum and maximum in the order they occurred (``t_s`` at the block's first and last
     sample), which keeps every peak a time plot shows. When the envelope passes
     ``envelope_rows`` it is folded 2:1 the same way. Memory is then at most
-    ``(full_rows + envelope_rows) × len(PLOT_COLUMNS) × 8`` bytes whatever the length (defaults:
-    ≈ 72 MB: between half an hour and an hour at 200 Hz whole, plus the envelope of everything
-    older).
+    ``(full_rows + envelope_rows) × len(columns) × 8`` bytes whatever the length (defaults, the
+    eight :data:`PLOT_COLUMNS`: ≈ 72 MB: between half an hour and an hour at 200 Hz whole, plus
+    the envelope of everything older; with :data:`SELFSENSE_PLOT_COLUMNS` ≈ 99 MB).
     """
 
     def __init__(self, capacity: int = 4096, full_rows: int = FULL_ROWS,
-                 envelope_rows: int = ENVELOPE_ROWS, fold: int = FOLD) -> None:  # fmt: skip
-        self._data = np.full((len(PLOT_COLUMNS), capacity), np.nan)
+                 envelope_rows: int = ENVELOPE_ROWS, fold: int = FOLD,
+                 columns: tuple[str, ...] = PLOT_COLUMNS) -> None:  # fmt: skip
+        self.columns = tuple(columns)
+        self._capacity = int(capacity)
+        self._data = np.full((len(self.columns), capacity), np.nan)
         self.full_rows = int(full_rows)
         self.envelope_rows = int(envelope_rows)
         self.fold = int(fold)
@@ -63,8 +78,15 @@ class SampleBuffer:
         self.full_start = 0  # index of the first full-resolution row
         self.total = 0  # rows appended since the last clear
 
-    def clear(self) -> None:
+    def clear(self, columns: tuple[str, ...] | None = None) -> None:
+        """Empty; with ``columns`` (other than the buffer's) the storage is made anew for them."""
         self.n = self.full_start = self.total = 0
+        if columns is not None and tuple(columns) != self.columns:
+            self.columns = tuple(columns)
+            self._data = np.full((len(self.columns), self._capacity), np.nan)
+
+    def has(self, name: str) -> bool:
+        return name in self.columns
 
     @property
     def full_start_abs(self) -> int:
@@ -80,7 +102,7 @@ class SampleBuffer:
         return int(self._data.nbytes)
 
     def append_rows(self, rows: np.ndarray) -> None:
-        """``rows``: (k, len(PLOT_COLUMNS)) array (a long one, a replay, in bounded pieces)."""
+        """``rows``: (k, len(columns)) array (a long one, a replay, in bounded pieces)."""
         k = rows.shape[0]
         step = max(1, self.full_rows // 4)
         if k > step:
@@ -92,7 +114,7 @@ class SampleBuffer:
         if self.n + k > self._data.shape[1]:
             size = max(2 * self._data.shape[1], self.n + k)
             size = min(size, max(self.n + k, self.full_rows + self.envelope_rows + k))
-            grown = np.full((len(PLOT_COLUMNS), size), np.nan)
+            grown = np.full((len(self.columns), size), np.nan)
             grown[:, : self.n] = self._data[:, : self.n]
             self._data = grown
         self._data[:, self.n : self.n + k] = rows.T
@@ -107,7 +129,8 @@ class SampleBuffer:
         take = (n_full // 2) // self.fold * self.fold
         if take == 0:
             return
-        env = _min_max(d[:, self.full_start : self.full_start + take], self.fold)
+        t = self.columns.index("t_s")
+        env = _min_max(d[:, self.full_start : self.full_start + take], self.fold, t)
         e0 = self.full_start
         d[:, e0 : e0 + env.shape[1]] = env
         e1 = e0 + env.shape[1]
@@ -115,7 +138,7 @@ class SampleBuffer:
         d[:, e1 : e1 + rest] = d[:, self.full_start + take : self.n]
         self.full_start, self.n = e1, e1 + rest
         if self.full_start > self.envelope_rows:
-            env = _min_max(d[:, : self.full_start - self.full_start % 4], 4)
+            env = _min_max(d[:, : self.full_start - self.full_start % 4], 4, t)
             tail = self.full_start % 4
             keep = np.concatenate([env, d[:, self.full_start - tail : self.n]], axis=1)
             d[:, : keep.shape[1]] = keep
@@ -124,20 +147,27 @@ class SampleBuffer:
 
     def append_columns(self, columns: dict[str, np.ndarray]) -> None:
         n = len(columns["t_s"])
-        rows = np.full((n, len(PLOT_COLUMNS)), np.nan)
-        for i, c in enumerate(PLOT_COLUMNS):
+        rows = np.full((n, len(self.columns)), np.nan)
+        for i, c in enumerate(self.columns):
             if c in columns and columns[c] is not None:
                 rows[:, i] = np.asarray(columns[c], dtype=float)
         self.append_rows(rows)
 
     def column(self, name: str) -> np.ndarray:
-        return self._data[PLOT_COLUMNS.index(name), : self.n]
+        return self._data[self.columns.index(name), : self.n]
 
 
-def _min_max(block: np.ndarray, fold: int) -> np.ndarray:
+def select(rows: np.ndarray, columns: tuple[str, ...]) -> np.ndarray:
+    """(k, len(LINK_COLUMNS)) rows of :func:`parse_rows` → their ``columns`` (a buffer's)."""
+    if tuple(columns) == LINK_COLUMNS:
+        return rows
+    return rows[:, [LINK_COLUMNS.index(c) for c in columns]]
+
+
+def _min_max(block: np.ndarray, fold: int, t: int) -> np.ndarray:
     """(columns, m·fold) → (columns, 2m): per block of ``fold`` rows and per column, the
     minimum and the maximum in the order they occurred (NaN-aware; an all-NaN block stays
-    NaN); ``t_s`` gets the block's first and last time."""
+    NaN); the time column (row ``t``) gets the block's first and last time."""
     c, n = block.shape
     b = block.reshape(c, n // fold, fold)
     out = np.empty((c, n // fold, 2))
@@ -149,21 +179,27 @@ def _min_max(block: np.ndarray, fold: int) -> np.ndarray:
     first_lo = lo_i <= hi_i
     out[..., 0] = np.where(first_lo, lo, hi)
     out[..., 1] = np.where(first_lo, hi, lo)
-    t = PLOT_COLUMNS.index("t_s")
     out[t, :, 0], out[t, :, 1] = b[t, :, 0], b[t, :, -1]
     return out.reshape(c, -1)
 
 
 def parse_rows(lines: list[str]) -> np.ndarray:
-    """``R`` lines (without the prefix) → (k, len(PLOT_COLUMNS)) floats; empty cells → NaN."""
-    out = np.full((len(lines), len(PLOT_COLUMNS)), np.nan)
+    """``R`` lines (without the prefix, cells as :data:`STREAM_COLUMNS`) → (k,
+    len(LINK_COLUMNS)) floats; empty or missing cells → NaN; ``feedback_resistance`` from the
+    row's flags (NaN without them)."""
+    out = np.full((len(lines), len(LINK_COLUMNS)), np.nan)
+    fb = LINK_COLUMNS.index("feedback_resistance")
     for r, line in enumerate(lines):
         cells = line.split(",")
-        for i, c in enumerate(PLOT_COLUMNS):
-            text = cells[_INDEX[c]]
+        for i, c in enumerate(LINK_COLUMNS):
+            j = _INDEX.get(c)
+            text = cells[j] if j is not None and j < len(cells) else ""
             if text:
                 with contextlib.suppress(ValueError):
                     out[r, i] = float(text)
+        if len(cells) > _FLAGS and cells[_FLAGS]:
+            with contextlib.suppress(ValueError):
+                out[r, fb] = 1.0 if int(cells[_FLAGS]) & FLAG_FEEDBACK_RESISTANCE else 0.0
     return out
 
 

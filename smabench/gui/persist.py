@@ -37,6 +37,7 @@ class Remembered:
         w = self.win
         return {"protocol": w.protocol, "fit_model": w.fit_model, "use_real": w.use_real,
                 "mock_effect": w.mock_effect, "mock_thermocouple": w.mock_thermocouple,
+                "mock_resistivity": w.mock_resistivity,
                 "serial_port": w.serial_port, "sensor_kind": w.sensor_kind,
                 "sensor_host": w.sensor_host, "sensor_rtu_port": w.sensor_rtu_port,
                 "sensor_baud": w.sensor_baud, "sensor_map": w.sensor_map}  # fmt: skip

@@ -240,3 +240,76 @@ class TimePlots(pg.GraphicsLayoutWidget):
                 lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
                 pad = 0.08 * (hi - lo) or 0.5
                 plot.setYRange(lo - pad, hi + pad, padding=0)
+
+
+class SelfSensePlots(pg.GraphicsLayoutWidget):
+    """Resistance sensing live (issue 26), for a session with a self-sense calibration.
+
+    Left: the wire's resistance against the laser's position (dots of the last
+    ``TIME_WINDOW_S``): the map the calibration learnt, its hysteresis, and whether today's wire
+    still follows it. Right: the laser's position and the estimate against time (the time
+    plots' axis), the stretches the controller ran on the estimate drawn thick. Against time,
+    not estimate against laser as XY: while the laser is lost (the fallback) there is no laser
+    position to draw the estimate against, and that is when the operator needs to see it carry
+    on; the estimate's error reads as a distance in mm between two traces."""
+
+    MAP_POINTS = 1500
+    MAP_EVERY = 5  # frames between redraws of the dots (6 Hz): the noisy R needs no more
+
+    def __init__(self, time_axis_of=None, parent: QtWidgets.QWidget | None = None) -> None:
+        """``time_axis_of``: a plot whose time axis the estimate plot follows (linked)."""
+        super().__init__(parent)
+        self.p_map = self.addPlot(row=0, col=0)
+        self.p_est = self.addPlot(row=0, col=1)
+        label_axis(self.p_map, "bottom", "laser position", "mm")
+        label_axis(self.p_map, "left", "R", "Ω")
+        label_axis(self.p_est, "bottom", "time", "s")
+        label_axis(self.p_est, "left", "x", "mm")
+        for p in (self.p_map, self.p_est):
+            p.showGrid(x=False, y=False)
+            add_legend(p)
+            p.disableAutoRange()
+        self.p_est.setDownsampling(auto=True, mode="peak")
+        self.p_est.setClipToView(True)
+        if time_axis_of is not None:
+            self.p_est.setXLink(time_axis_of)
+        self.c_map = self.p_map.plot([], [], pen=None, symbol="o", symbolSize=3,
+                                     symbolPen=None, symbolBrush=pg.mkBrush(*BRIGHT, 120),
+                                     name="wire resistance")  # fmt: skip
+        self.c_laser = self.p_est.plot(pen=pg.mkPen((30, 90, 200), width=1), name="laser")
+        self.c_est = self.p_est.plot(pen=pg.mkPen((150, 60, 160), width=1),
+                                     name="from resistance")  # fmt: skip
+        self.c_on_est = self.p_est.plot(pen=pg.mkPen((230, 140, 0), width=3),
+                                        name="controlled on it")  # fmt: skip
+        self._frames = 0
+
+    def reset(self) -> None:
+        for c in (self.c_map, self.c_laser, self.c_est, self.c_on_est):
+            c.setData([], [])
+        self._frames = 0
+
+    def update_from(self, buf: SampleBuffer) -> None:
+        if buf.n == 0 or not buf.has("position_est_mm"):
+            return
+        t_all = buf.column("t_s")
+        i0 = int(np.searchsorted(t_all, t_all[-1] - TIME_WINDOW_S))
+        t = t_all[i0:]
+        laser = buf.column("position_mm")[i0:]
+        est = buf.column("position_est_mm")[i0:]
+        on = buf.column("feedback_resistance")[i0:] > 0.5
+        self.c_laser.setData(t, laser, connect="finite")
+        self.c_est.setData(t, est, connect="finite")
+        self.c_on_est.setData(t, np.where(on, est, np.nan), connect="finite")
+        values = np.concatenate([laser, est])
+        if np.isfinite(values).any():
+            keep_range(self.p_est, "y", float(np.nanmin(values)), float(np.nanmax(values)))
+        if self._frames % self.MAP_EVERY == 0:
+            r = buf.column("resistance_ohm")[i0:]
+            ok = np.isfinite(r) & np.isfinite(laser)
+            x, y = laser[ok], r[ok]
+            sel = thin(x.size, self.MAP_POINTS)
+            self.c_map.setData(x[sel], y[sel])
+            if x.size:
+                keep_range(self.p_map, "x", float(x.min()), float(x.max()))
+                keep_range(self.p_map, "y", float(y.min()), float(y.max()))
+        self._frames += 1

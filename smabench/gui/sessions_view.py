@@ -241,13 +241,17 @@ class SessionsMixin:
         self.open_session(folder)
 
     def _dialog_for(self, title: str, mode: str, start: str) -> QtWidgets.QFileDialog:
-        """A non-native, non-modal file dialog (the E-STOP button stays usable beside it)."""
+        """A non-native, non-modal file dialog (the E-STOP button stays usable beside it);
+        ``mode``: ``dir`` (a folder), ``json`` (a JSON file to read) or ``save`` (a CSV)."""
         dlg = QtWidgets.QFileDialog(self, title, start)
         dlg.setOption(QtWidgets.QFileDialog.Option.DontUseNativeDialog, True)
         dlg.setWindowModality(QtCore.Qt.WindowModality.NonModal)
         if mode == "dir":
             dlg.setFileMode(QtWidgets.QFileDialog.FileMode.Directory)
             dlg.setOption(QtWidgets.QFileDialog.Option.ShowDirsOnly, True)
+        elif mode == "json":  # an existing JSON file to read
+            dlg.setFileMode(QtWidgets.QFileDialog.FileMode.ExistingFile)
+            dlg.setNameFilter("JSON (*.json)")
         else:
             dlg.setAcceptMode(QtWidgets.QFileDialog.AcceptMode.AcceptSave)
             dlg.setNameFilter("CSV (*.csv)")

@@ -20,13 +20,11 @@ HIDDEN = {
     "time_scale",  # follows the mock bench's speed
     "out_dir",  # the Sessions tab's folder
     "session_id",  # named by time, protocol and load
-    # resistance sensing (issue 26): run settings (the runtime's JSON takes them), not in the
-    # window yet; the window's sessions run without them, as before
-    "probe_current_a",
-    "selfsense",
-    "feedback",
-    "fallback",
 }
+SELFSENSE_KEYS = ("probe_current_a", "selfsense", "feedback", "fallback")
+"""Resistance sensing (issue 26, schema group ``loop``): shown under their own heading; the
+calibration file with a button to choose it; ``feedback`` switches live in a session with a
+calibration."""
 GAIN_LAWS = tuple((law, gs.label, gs.units) for law, gs in GAIN_SETS.items())
 
 # not run settings: how the devices are reached (shown only while not connected)

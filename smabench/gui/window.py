@@ -32,7 +32,14 @@ from smabench.gui.fields import Field
 from smabench.gui.fitjob import shown_cycle
 from smabench.gui.gui_gc import GuiThreadCollector
 from smabench.gui.layout import MODES, WindowLayout
-from smabench.gui.link import RuntimeLink, SampleBuffer
+from smabench.gui.link import (
+    LINK_COLUMNS,
+    PLOT_COLUMNS,
+    SELFSENSE_PLOT_COLUMNS,
+    RuntimeLink,
+    SampleBuffer,
+    select,
+)
 from smabench.gui.persist import Remembered
 from smabench.gui.progress import estimate, planned_cycles_s
 from smabench.gui.readouts import Readouts
@@ -84,6 +91,13 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.pending_start: dict[str, Any] | None = None
         self.session_folder: Path | None = None  # the running session's folder
         self.session_controller = False  # the running session has a controller
+        # resistance sensing (issue 26) of the running (or last) session
+        self.session_selfsense = False  # it has a self-sense calibration
+        self._feedback_chosen = "laser"  # its feedback as chosen (start, then the live switch)
+        self._session_fallback: str | None = None  # its fallback setting
+        self._fallback_since_t: float | None = None  # device time the fallback began
+        self._laser_back: tuple[float, float] | None = None  # (device t, s on the estimate)
+        self._on_estimate = False  # the newest row was controlled on the estimate
         self.buffer = SampleBuffer()
         self.cycle_tail = CycleTail()  # the running (or last) session's per-cycle rows
         self._frames = 0
@@ -175,6 +189,11 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             wdg.setEnabled(c.connection_fields)
         self.protocol.setEnabled(c.session_fields)
         in_run = st in (State.RUNNING, State.PAUSED)
+        # the feedback switches live, but only in a session that has the estimate to switch to
+        self.fields["feedback"].setEnabled(c.session_fields
+                                           or (in_run and self.session_selfsense))  # fmt: skip
+        self.selfsense_browse.setEnabled(c.session_fields)
+        self.mock_resistivity.setEnabled(c.connection_fields)
         for b in self.mode_buttons.values():
             # mid-run only a controller session can switch law; before a run any may be chosen
             b.setEnabled(not in_run or self.session_controller)
@@ -212,6 +231,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                 args += ["--effect", effect]
             if self.mock_thermocouple.isChecked():
                 args += ["--thermocouple"]
+            if self.mock_resistivity.currentData():
+                args += ["--resistivity", self.mock_resistivity.currentData()]
             return {"mock": args, "time_scale": speed}
         if self.sensor_kind.currentText() == "TCP":
             host = self.sensor_host.text().strip()
@@ -338,6 +359,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             if st.group == "protocol" and not st.uses(name, closed):
                 continue
             v = f.value()
+            if key == "selfsense" and v:  # the runtime reads it: "~" as the operator means it
+                v = str(Path(v).expanduser())
             if st.required or v != st.default:
                 flat[key] = v
         if closed:
@@ -415,6 +438,12 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         self.pending_start = None
         self.fire("start")
         self.session_controller = "controller" in settings
+        self.session_selfsense = settings.get("selfsense") is not None
+        self._feedback_chosen = str(settings.get("feedback") or "laser")
+        self._session_fallback = settings.get("fallback")
+        self._fallback_since_t = self._laser_back = None
+        self._on_estimate = False
+        self._show_sensing()
         self._show_setting_fields()
         self.pending_settings = settings
         protocol = settings.get("protocol") or {}
@@ -612,6 +641,111 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         else:
             self.say(f"{label} gains will be used from the next session.")
 
+    # ------------------------------------------------------------------ resistance sensing
+    def choose_selfsense_file(self) -> None:
+        """Browse for a self-sense calibration (``smabench selfsense calibrate``'s JSON)."""
+        current = self.fields["selfsense"].text().strip()
+        start = str(Path(current).expanduser().parent) if current else str(Path.cwd())
+        dlg = self._dialog_for("Self-sense calibration", "json", start)
+        dlg.fileSelected.connect(lambda path: self.fields["selfsense"].set_value(path))
+        dlg.show()
+
+    def feedback_chosen(self) -> None:
+        """The feedback choice changed: in a running session with a calibration it switches
+        the controller's position source live (bumpless in the runtime); otherwise it is the
+        next session's setting."""
+        field = self.fields["feedback"]
+        source = field.value()
+        if not (self.state in (State.RUNNING, State.PAUSED) and self.session_selfsense
+                and self.link is not None) or source == self._feedback_chosen:  # fmt: skip
+            return
+        self._feedback_chosen = source
+        self._fallback_since_t = self._laser_back = None
+        self.link.send(f"feedback {source}")
+        self.say("Position feedback: " + ("the position from the wire's resistance"
+                 if source == "resistance" else "the laser") + ", from the next control tick.")
+        self._show_sensing()
+
+    def _set_feedback_field(self, source: str) -> None:
+        field = self.fields["feedback"]
+        field.blockSignals(True)
+        field.set_value(source)
+        field.blockSignals(False)
+
+    def _follow_feedback(self, rows) -> None:
+        """The rows' ``feedback_resistance`` (from their flags): when the control went onto
+        the estimate and back (device time), for :meth:`_show_sensing`."""
+        t = rows[:, LINK_COLUMNS.index("t_s")]
+        fb = rows[:, LINK_COLUMNS.index("feedback_resistance")]
+        known = np.isfinite(fb)
+        if not known.any():
+            return
+        t, on = t[known], fb[known] > 0.5
+        before = np.concatenate([[self._on_estimate], on[:-1]])
+        changes = np.flatnonzero(on != before)
+        for i in changes:
+            if on[i] and self._feedback_chosen == "laser":  # the fallback, not the choice
+                self._fallback_since_t = float(t[i])
+                self._laser_back = None
+            elif not on[i] and self._fallback_since_t is not None:
+                self._laser_back = (float(t[i]), float(t[i]) - self._fallback_since_t)
+                self._fallback_since_t = None
+        self._on_estimate = bool(on[-1])
+        if changes.size:
+            self._show_sensing()
+
+    def _show_sensing(self) -> None:
+        """The line beside the readouts: where the controller's position comes from (blank in
+        a session without a self-sense calibration)."""
+        lbl = self.sensing_label
+        if not self.session_selfsense:
+            lbl.setText("")
+            lbl.setToolTip("")
+            lbl.setStyleSheet("")
+            return
+        style = "color: #1a4f8a;"
+        if self._feedback_chosen == "resistance":
+            text = "Position from the wire's resistance (chosen)."
+            tip = ("The controller's position is the one estimated from the wire's resistance, "
+                   "as chosen; the laser's is recorded beside it.")
+            style = "color: #1a4f8a; font-weight: bold;"
+        elif self._on_estimate and self._fallback_since_t is not None:
+            text = (f"LASER LOST at {self._fallback_since_t:.1f} s: position from the wire's "
+                    "resistance (fallback).")
+            tip = ("The laser gives no valid reading: the control goes on with the position "
+                   "estimated from the wire's resistance until the laser is back (the rows are "
+                   "flagged; the session ends if the laser stays away too long).")
+            style = "color: #c62828; font-weight: bold;"
+        elif self._laser_back is not None:
+            t, gap = self._laser_back
+            text = f"Laser back at {t:.1f} s, after {gap:.1f} s on the wire's resistance."
+            tip = ("The laser reads again: the control is back on it (times in the session's "
+                   "own seconds).")
+            style = "color: #1b5e20; font-weight: bold;"
+        else:
+            armed = self._session_fallback == "resistance"
+            text = "Position from the laser; " + ("fallback: the wire's resistance." if armed
+                                                  else "no fallback.")  # fmt: skip
+            tip = ("The controller's position is the laser's; the one estimated from the wire's "
+                   "resistance is recorded and plotted beside it" + (
+                       ", and takes over while the laser gives no valid reading." if armed
+                       else "."))  # fmt: skip
+        lbl.setToolTip(tip)
+        lbl.setText(text)
+        lbl.setStyleSheet(style)
+
+    def _on_notice(self, text: str) -> None:
+        """A warning of the session's loop (``W``): the position feedback's (the fallback on
+        the wire's resistance, the laser back) on the message line in plain words, unless an
+        E-STOP's message is there; any other only in the log (a lost device or a trip is
+        decided from the status and the session's end, in one place)."""
+        log.info("runtime warning: %s", text)
+        said = words.sensing_notice(text)
+        if said is None or self.state not in (State.RUNNING, State.PAUSED):
+            return
+        sentence, good = said
+        self.say(sentence, error=not good)
+
     def _live_controller(self) -> bool:
         return (self.state in (State.RUNNING, State.PAUSED) and self.session_controller
                 and self.link is not None)  # fmt: skip
@@ -626,7 +760,9 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
                 # (after an E-STOP or a loss the rows still coming are not live)
                 if self._fresh_session:  # the first rows of a new session
                     self._clear_live()
-                self.buffer.append_rows(rows)
+                self.buffer.append_rows(select(rows, self.buffer.columns))
+                if self.session_selfsense:
+                    self._follow_feedback(rows)
             for kind, payload in link.poll():
                 if self.link is not link:  # disconnected while handling an event
                     break
@@ -641,6 +777,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
         if self.tabs.currentIndex() == 0 and self.buffer.n:
             self.loop_plot.update_from(self.buffer)
             self.time_plots.update_from(self.buffer)
+            if self.selfsense_plots.isVisible():
+                self.selfsense_plots.update_from(self.buffer)
         self._frames += 1
         if self.session_folder is not None and self._frames % TREND_EVERY == 0:
             self.cycle_tail.read()
@@ -684,6 +822,8 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             self._on_end(payload)
         elif kind == "Q":
             self._on_runtime_gone(payload)
+        elif kind == "W":
+            self._on_notice(str(payload.get("text", "")))
 
     def _on_status(self, st: dict[str, Any]) -> None:
         if "connecting" in st:  # what the runtime is opening now
@@ -694,9 +834,15 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
             return
         if "error" in st:
             text = words.plain(st["error"])
+            if st.get("command") == "feedback":  # refused: the choice shows what runs
+                self._feedback_chosen = str(self.status.get("feedback") or "laser")
+                self._set_feedback_field(self._feedback_chosen)
+                self._show_sensing()
             if st.get("command") == "start" or self.state == State.STARTING:
                 self._fresh_session = False  # a refused start leaves the plots as they were
                 self._plan_s = None
+                self.session_selfsense = not self.selfsense_plots.isHidden()  # the shown one's
+                self._show_sensing()
                 self.fire("refused")
                 self.say(f"Not started: {text}", error=True)
             elif self.state != State.ESTOPPED:
@@ -722,10 +868,13 @@ class MainWindow(WindowLayout, SessionsMixin, QtWidgets.QMainWindow):
     def _clear_live(self) -> None:
         """The live plots start over (a new session's first rows or its start)."""
         self._fresh_session = False
-        self.buffer.clear()
+        self.buffer.clear(PLOT_COLUMNS + SELFSENSE_PLOT_COLUMNS if self.session_selfsense
+                          else PLOT_COLUMNS)  # fmt: skip
         self.loop_plot.reset()
         self.time_plots.reset()
         self.time_plots.follow = True
+        self.selfsense_plots.reset()
+        self.selfsense_plots.setVisible(self.session_selfsense)
 
     def _show_status(self, st: dict[str, Any]) -> None:
         stats = st.get("sensor_stats", {})

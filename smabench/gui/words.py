@@ -131,6 +131,31 @@ def plain(text: str, limit: int = 240) -> str:
     return text if text.endswith((".", "…", "?", "!")) else text + "."
 
 
+SENSING_RULES: list[_Rule] = [
+    _rule(r"no valid reading for [\d.]+ s; control goes on with the position from the wire's "
+          r"resistance",
+          "The laser gives no valid reading: control goes on with the position from the wire's "
+          "resistance until it is back."),
+    _rule(r"displacement sensor back after [\d.]+ s", "The laser is back: control on the laser "
+          "again."),
+]
+"""The session loop's warnings about the position feedback (the fallback on the wire's
+resistance and its end), in the operator's words; the second is good news. Without the loop's
+durations: those are wall-clock seconds, the sensing line's are the session's (they differ on a
+mock bench run faster than real time)."""
+
+
+def sensing_notice(text: str) -> tuple[str, bool] | None:
+    """(the operator's sentence, whether it is good news) for a loop warning about the
+    position feedback; None for any other warning (the window decides those elsewhere: a lost
+    device from the status, a trip from the session's end)."""
+    for k, (pattern, fn) in enumerate(SENSING_RULES):
+        m = pattern.search(str(text))
+        if m:
+            return fn(m), k == 1
+    return None
+
+
 def device_lost(reason: str) -> bool:
     """Whether a session's end reason means a device is gone (the link must be reopened)."""
     return bool(re.search(r"telemetry lost|sensor lost|link lost|driver lost|LinkError|LinkTimeout|"

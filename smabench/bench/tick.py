@@ -462,8 +462,11 @@ class ControlTick:
             )  # fmt: skip
         elif valid and self._fallback_announced:
             self._fallback_announced = False
-            log.warning("displacement sensor back after %.2f s: control on the laser again",
-                        gap_s)  # fmt: skip
+            scale = self.config.time_scale
+            session = "" if scale == 1.0 else \
+                f" ({gap_s * scale:.2f} s of the session's time at {scale:g}×)"  # fmt: skip
+            log.warning("displacement sensor back after %.2f s%s: control on the laser again",
+                        gap_s, session)  # fmt: skip
 
     def _interlock(self, current_set_a: float, temperature_c: float, position_mm: float) -> str:
         cfg = self.config
